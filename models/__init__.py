@@ -1,0 +1,1 @@
+"""MJCF scenes shipped with mjstamp (data, loaded with importlib.resources)."""
