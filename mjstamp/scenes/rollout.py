@@ -1,0 +1,246 @@
+"""Batched MJX rollouts (differentiable) and their MuJoCo C replay (verification)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import mujoco.rollout
+import numpy as np
+from mujoco import mjx
+
+from mjstamp.errors import MjstampError, valid_list
+
+# Fields a rollout can return, each of shape (n, T, ...) for steps 1..T.
+STATE_FIELDS = ("qpos", "qvel", "ctrl")
+POSE_FIELDS = ("xpos", "xquat", "xmat", "geom_xpos", "geom_xmat", "site_xpos")
+FIELDS = STATE_FIELDS + POSE_FIELDS
+
+Trajectory = dict[str, jax.Array]
+
+
+def _check_fields(fields: Sequence[str]) -> tuple[str, ...]:
+    fields = tuple(fields)
+    for f in fields:
+        if f not in FIELDS:
+            raise MjstampError(f"unknown rollout field {f!r}; valid: {valid_list(FIELDS)}")
+    if not fields:
+        raise MjstampError(f"rollout needs at least one field; valid: {valid_list(FIELDS)}")
+    return fields
+
+
+def _chunk_length(horizon: int, checkpoint) -> int | None:
+    """Steps per rematerialised chunk, or None for no checkpointing."""
+    if checkpoint is None or checkpoint is False:
+        return None
+    if checkpoint == "auto":
+        if horizon < 64:
+            return None
+        # The divisor of the horizon nearest sqrt(T): O(sqrt T) residual memory
+        # for one extra forward pass in the backward sweep.
+        divisors = [c for c in range(1, horizon + 1) if horizon % c == 0]
+        return min(divisors, key=lambda c: abs(c - math.sqrt(horizon)))
+    chunk = int(checkpoint)
+    if chunk < 1 or horizon % chunk:
+        raise MjstampError(
+            f"checkpoint={checkpoint!r} must divide the horizon {horizon}; valid: "
+            "None, 'auto' or a divisor of the horizon"
+        )
+    return chunk
+
+
+def build_rollout(
+    scene,
+    horizon: int,
+    *,
+    fields: Sequence[str] = ("qpos", "qvel"),
+    checkpoint: str | int | None = "auto",
+) -> Callable[..., Trajectory]:
+    """Builds a batched, differentiable MJX rollout of `scene` over `horizon` steps.
+
+    The returned function is `rollout(qpos0, qvel0, ctrl=None) -> {field: array}`
+    with `qpos0: (n, nq)`, `qvel0: (n, nv)`, `ctrl: (n, horizon, nu)` (may be
+    omitted when the scene has no actuators) and every field of shape
+    `(n, horizon, ...)`, holding the state after steps 1..horizon. Poses
+    (`xpos`, `geom_xpos`, ...) are those of that same state: MJX's step computes
+    kinematics before integrating, so they are recomputed after it.
+
+    It is `jax.jit`-compiled: one executable per batch size, reused; inside a
+    caller's `jit` or `grad` it inlines. Use `Scene.rollout_fn` to share it.
+
+    Args:
+      scene: a `Scene`; its `mx` (gradient-safe options) is stepped.
+      horizon: number of steps T >= 1.
+      fields: which trajectories to return (see `FIELDS`).
+      checkpoint: `"auto"` rematerialises chunks of about sqrt(T) steps when
+        T >= 64, so reverse-mode memory grows as sqrt(T) instead of T, for one
+        extra forward pass; None stores every step; an int is the chunk length.
+
+    Returns:
+      The rollout function.
+    """
+    horizon = int(horizon)
+    if horizon < 1:
+        raise MjstampError(f"horizon={horizon} must be >= 1")
+    fields = _check_fields(fields)
+    chunk = _chunk_length(horizon, checkpoint)
+    m, mx, dtype = scene.m, scene.mx, scene.dtype
+    nq, nv, nu = m.nq, m.nv, m.nu
+    need_kinematics = any(f in POSE_FIELDS for f in fields)
+    d0 = jax.tree_util.tree_map(
+        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+        mjx.make_data(mx),
+    )
+
+    def step(dx, u):
+        dx = mjx.step(mx, dx.replace(ctrl=u))
+        src = mjx.kinematics(mx, dx) if need_kinematics else dx
+        return dx, {f: getattr(src, f) for f in fields}
+
+    def single(qpos0, qvel0, ctrl):
+        dx = d0.replace(qpos=qpos0, qvel=qvel0)
+        if chunk is None:
+            return jax.lax.scan(step, dx, ctrl)[1]
+
+        @jax.checkpoint
+        def run_chunk(dx, ctrl_chunk):
+            return jax.lax.scan(step, dx, ctrl_chunk)
+
+        ctrl = ctrl.reshape(horizon // chunk, chunk, nu)
+        out = jax.lax.scan(run_chunk, dx, ctrl)[1]
+        return jax.tree_util.tree_map(lambda x: x.reshape(horizon, *x.shape[2:]), out)
+
+    batched = jax.jit(jax.vmap(single))
+
+    def rollout(qpos0, qvel0, ctrl=None) -> Trajectory:
+        qpos0 = jnp.asarray(qpos0, dtype)
+        qvel0 = jnp.asarray(qvel0, dtype)
+        if qpos0.ndim != 2 or qpos0.shape[1] != nq:
+            raise MjstampError(f"qpos0 has shape {qpos0.shape}; valid: (n, {nq})")
+        n = qpos0.shape[0]
+        if qvel0.shape != (n, nv):
+            raise MjstampError(f"qvel0 has shape {qvel0.shape}; valid: ({n}, {nv})")
+        if ctrl is None:
+            if nu:
+                raise MjstampError(
+                    f"ctrl is missing; scene {scene.name!r} has {nu} actuators: "
+                    f"pass ctrl of shape ({n}, {horizon}, {nu})"
+                )
+            ctrl = jnp.zeros((n, horizon, 0), dtype)
+        ctrl = jnp.asarray(ctrl, dtype)
+        if ctrl.shape != (n, horizon, nu):
+            raise MjstampError(
+                f"ctrl has shape {ctrl.shape}; valid: ({n}, {horizon}, {nu})"
+            )
+        return batched(qpos0, qvel0, ctrl)
+
+    rollout.horizon = horizon
+    rollout.fields = fields
+    rollout.chunk = chunk
+    return rollout
+
+
+def replay(
+    scene,
+    qpos0,
+    qvel0,
+    ctrl=None,
+    *,
+    horizon: int | None = None,
+    fields: Sequence[str] = ("qpos", "qvel"),
+    solver: str = "scene",
+) -> dict[str, np.ndarray]:
+    """Replays initial states and controls in MuJoCo C (float64), for verification.
+
+    Args:
+      scene: a `Scene`.
+      qpos0: (n, nq) initial positions.
+      qvel0: (n, nv) initial velocities.
+      ctrl: (n, T, nu) controls, or None for a scene without actuators.
+      horizon: T, needed when `ctrl` is None.
+      fields: as in `build_rollout`.
+      solver: "scene" steps `scene.m`, the scene's own solver settings (how a
+        plan is verified); "grad" steps `scene.m_grad`, the MuJoCo C twin of the
+        MJX model (how MJX is tested).
+
+    Returns:
+      {field: (n, T, ...) float64 array}, states after steps 1..T.
+    """
+    fields = _check_fields(fields)
+    if solver not in ("scene", "grad"):
+        raise MjstampError(f"solver={solver!r} is not valid; valid: scene, grad")
+    m = scene.m if solver == "scene" else scene.m_grad
+    qpos0 = np.asarray(qpos0, np.float64)
+    qvel0 = np.asarray(qvel0, np.float64)
+    n = qpos0.shape[0]
+    if qpos0.shape != (n, m.nq) or qvel0.shape != (n, m.nv):
+        raise MjstampError(
+            f"replay needs qpos0 ({n}, {m.nq}) and qvel0 ({n}, {m.nv}); got "
+            f"{qpos0.shape} and {qvel0.shape}"
+        )
+    if ctrl is None:
+        if horizon is None:
+            raise MjstampError("replay needs ctrl or horizon")
+        ctrl = np.zeros((n, int(horizon), m.nu))
+    ctrl = np.asarray(ctrl, np.float64)
+    T = ctrl.shape[1]
+
+    d = mujoco.MjData(m)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    state0 = np.empty((n, mujoco.mj_stateSize(m, spec)))
+    for i in range(n):
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:] = qpos0[i], qvel0[i]
+        mujoco.mj_getState(m, d, state0[i], spec)
+    nthread = max(1, min(n, len(_affinity())))
+    datas = [mujoco.MjData(m) for _ in range(nthread)]
+    state, _ = mujoco.rollout.rollout(m, datas, state0, ctrl, nstep=T)
+
+    out: dict[str, np.ndarray] = {}
+    # FULLPHYSICS state: time, qpos, qvel, act, history, warmstart, ... in that order.
+    qpos = state[..., 1 : 1 + m.nq]
+    qvel = state[..., 1 + m.nq : 1 + m.nq + m.nv]
+    if "qpos" in fields:
+        out["qpos"] = qpos.copy()
+    if "qvel" in fields:
+        out["qvel"] = qvel.copy()
+    if "ctrl" in fields:
+        out["ctrl"] = ctrl.copy()
+    slow = [f for f in fields if f not in ("qpos", "qvel", "ctrl")]
+    if slow:
+        out.update(_recompute(m, qpos, slow))
+    return out
+
+
+def _recompute(m, qpos, fields) -> dict[str, np.ndarray]:
+    """Poses of the states, which the C rollout does not store (kinematics)."""
+    n, T = qpos.shape[:2]
+    d = mujoco.MjData(m)
+    shapes = {
+        "xpos": (m.nbody, 3),
+        "xquat": (m.nbody, 4), "xmat": (m.nbody, 9), "geom_xpos": (m.ngeom, 3),
+        "geom_xmat": (m.ngeom, 9), "site_xpos": (m.nsite, 3),
+    }
+    out = {f: np.empty((n, T) + shapes[f]) for f in fields}
+    for i in range(n):
+        for t in range(T):
+            d.qpos[:] = qpos[i, t]
+            mujoco.mj_kinematics(m, d)
+            for f in fields:
+                out[f][i, t] = getattr(d, f).reshape(shapes[f])
+    for f in ("xmat", "geom_xmat"):
+        if f in out:
+            out[f] = out[f].reshape(n, T, -1, 3, 3)
+    return out
+
+
+def _affinity() -> set[int]:
+    import os
+
+    try:
+        return os.sched_getaffinity(0)
+    except AttributeError:  # pragma: no cover - macOS
+        return set(range(os.cpu_count() or 1))

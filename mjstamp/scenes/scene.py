@@ -1,0 +1,352 @@
+"""Scene: an MJCF model, its gradient-safe MJX twin and its names, resolved once."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import importlib.resources
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from mjstamp.errors import MjstampError, valid_list
+
+_SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
+_CUSTOM_PREFIX = "mjstamp.grad."
+
+
+@dataclasses.dataclass(frozen=True)
+class GradOptions:
+    """Solver options of the model used for differentiable (MJX) rollouts.
+
+    The scene's own options (its MJCF `<option>`) stay untouched in `Scene.m` and
+    are what plans are verified with; these replace them in `Scene.m_grad` and
+    `Scene.mx` only. Precedence, lowest first: these defaults, then
+    `<custom><numeric name="mjstamp.grad.FIELD" data="VALUE"/></custom>` in the
+    MJCF, then the fields a caller passes.
+
+    Attributes:
+      solver: "newton" or "cg". Newton, because with a single iteration it
+        already lands at (or very near) the solution of a small contact problem,
+        where CG's first step is only a steepest-descent step.
+      iterations: solver iterations. N.B. must be 1: reverse-mode AD cannot go
+        through the solver's `lax.while_loop`, which MJX uses for more.
+      ls_iterations: line-search iterations (a `scan`, so AD goes through). A
+        few suffice for one Newton step on these small problems; each costs a
+        full evaluation of the constraint cost.
+      timestep: integration step in seconds; None keeps the MJCF's. Contact
+        softness (geom `solref`/`solimp`) always comes from the MJCF: MJX does
+        not support MuJoCo's global contact override.
+      warmstart: keep the solver's warm start. Off: one Newton iteration from
+        the smooth acceleration is the same every step, whatever the history.
+    """
+
+    solver: str = "newton"
+    iterations: int = 1
+    ls_iterations: int = 4
+    timestep: float | None = None
+    warmstart: bool = False
+
+    def __post_init__(self):
+        if self.solver not in _SOLVERS:
+            raise MjstampError(
+                f"GradOptions.solver={self.solver!r} is not supported; valid: "
+                f"{valid_list(_SOLVERS)}"
+            )
+        if self.iterations != 1:
+            raise MjstampError(
+                f"GradOptions.iterations={self.iterations}: reverse-mode gradients "
+                "through MJX need exactly 1 solver iteration"
+            )
+        if int(self.ls_iterations) < 1:
+            raise MjstampError(
+                f"GradOptions.ls_iterations={self.ls_iterations} must be >= 1"
+            )
+        if self.timestep is not None and not self.timestep > 0:
+            raise MjstampError(f"GradOptions.timestep={self.timestep} must be > 0")
+
+    def apply(self, m: mujoco.MjModel) -> mujoco.MjModel:
+        """Returns a copy of `m` with these options."""
+        m = copy.copy(m)
+        m.opt.solver = _SOLVERS[self.solver]
+        m.opt.iterations = self.iterations
+        m.opt.ls_iterations = int(self.ls_iterations)
+        if self.timestep is not None:
+            m.opt.timestep = self.timestep
+        if self.warmstart:
+            m.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
+        else:
+            m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
+        return m
+
+
+def _options_from_custom(m: mujoco.MjModel) -> dict[str, Any]:
+    """Reads `mjstamp.grad.*` overrides from the MJCF's <custom> numerics."""
+    fields = {f.name: f.type for f in dataclasses.fields(GradOptions)}
+    out = {}
+    for i in range(m.nnumeric):
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_NUMERIC, i)
+        if not name or not name.startswith(_CUSTOM_PREFIX):
+            continue
+        key = name[len(_CUSTOM_PREFIX) :]
+        if key not in fields or key == "solver":
+            raise MjstampError(
+                f"unknown custom numeric {name!r}; valid: "
+                f"{valid_list(_CUSTOM_PREFIX + k for k in fields if k != 'solver')}"
+            )
+        adr = m.numeric_adr[i]
+        value = float(m.numeric_data[adr])
+        out[key] = bool(value) if key == "warmstart" else value
+        if key in ("iterations", "ls_iterations"):
+            out[key] = int(value)
+    return out
+
+
+_NAME_KINDS = {
+    "body": (mujoco.mjtObj.mjOBJ_BODY, "nbody"),
+    "geom": (mujoco.mjtObj.mjOBJ_GEOM, "ngeom"),
+    "joint": (mujoco.mjtObj.mjOBJ_JOINT, "njnt"),
+    "site": (mujoco.mjtObj.mjOBJ_SITE, "nsite"),
+    "actuator": (mujoco.mjtObj.mjOBJ_ACTUATOR, "nu"),
+}
+
+
+def _load_model(source, assets: dict[str, bytes] | None) -> tuple[mujoco.MjModel, str]:
+    """Compiles `source` into an MjModel; returns it with a label for messages."""
+    if hasattr(source, "to_xml_string") and hasattr(source, "get_assets"):
+        # A dm_control.mjcf RootElement: composition of scenes goes through mjcf.
+        label = f"mjcf model {getattr(source, 'model', None)!r}"
+        try:
+            xml = source.to_xml_string()
+            all_assets = dict(source.get_assets())
+        except Exception as e:  # noqa: BLE001 - dm_control raises many types
+            raise MjstampError(f"{label}: {_one_line(e)}") from None
+        all_assets.update(assets or {})
+        return _compile(lambda: mujoco.MjModel.from_xml_string(xml, all_assets), label)
+    if isinstance(source, Path) or (
+        isinstance(source, str) and not source.lstrip().startswith("<")
+    ):
+        path = Path(source)
+        label = str(path)
+        if not path.is_file():
+            raise MjstampError(f"{label}: MJCF file not found")
+        if assets:
+            xml = path.read_text()
+            return _compile(
+                lambda: mujoco.MjModel.from_xml_string(xml, assets), label
+            )
+        return _compile(lambda: mujoco.MjModel.from_xml_path(str(path)), label)
+    if isinstance(source, str):
+        return _compile(
+            lambda: mujoco.MjModel.from_xml_string(source, assets or {}),
+            "MJCF string",
+        )
+    raise MjstampError(
+        f"cannot build a Scene from {type(source).__name__}; valid: an MJCF path, an "
+        "MJCF string or a dm_control.mjcf element"
+    )
+
+
+def _one_line(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return text or type(e).__name__
+
+
+def _compile(fn, label: str) -> tuple[mujoco.MjModel, str]:
+    try:
+        return fn(), label
+    except ValueError as e:
+        # N.B. MuJoCo's XML errors span several lines ("XML Error: ...\nElement ...").
+        raise MjstampError(f"{label}: {_one_line(e)}") from None
+
+
+def package_model_path(filename: str) -> Path:
+    """Path of an MJCF file shipped in mjstamp's `models/` (importlib.resources)."""
+    ref = importlib.resources.files("mjstamp.models").joinpath(filename)
+    return Path(os.fspath(ref))
+
+
+def shipped_models() -> list[str]:
+    """Names of the MJCF files shipped in `models/`, without `.xml`."""
+    root = importlib.resources.files("mjstamp.models")
+    return sorted(p.name[:-4] for p in root.iterdir() if p.name.endswith(".xml"))
+
+
+class Scene:
+    """An MJCF scene: MuJoCo model, gradient-safe MJX model, and resolved names.
+
+    Attributes:
+      name: a label for messages (the model name or file stem).
+      m: the `MjModel` with the scene's own options; plans are verified with it.
+      m_grad: a copy with `grad_options` applied; MuJoCo C twin of `mx`.
+      mx: the `mjx.Model` of `m_grad`, in `dtype`.
+      dtype: float dtype of MJX rollouts (see `precision`).
+      grad_options: the `GradOptions` in force.
+    """
+
+    def __init__(
+        self,
+        source,
+        *,
+        grad_options: GradOptions | None = None,
+        precision: str | None = None,
+        assets: dict[str, bytes] | None = None,
+        name: str | None = None,
+        **overrides,
+    ):
+        """Builds a scene.
+
+        Args:
+          source: an MJCF file path, an MJCF XML string, or a `dm_control.mjcf`
+            RootElement.
+          grad_options: gradient-safe solver options (default `GradOptions()`,
+            then MJCF `<custom>` overrides). Keyword `overrides` (e.g.
+            `ls_iterations=8`) replace single fields on top.
+          precision: "float32" or "float64" for MJX rollouts; must agree with
+            `jax_enable_x64`, which it follows when None (the default). The
+            CLI enables x64: see `mjstamp.scenes.gradsafe` for why.
+          assets: extra files (name -> bytes) for meshes and includes.
+          name: label for messages; defaults to the model name.
+
+        Raises:
+          MjstampError: malformed MJCF, missing file, bad option.
+        """
+        self.m, self._label = _load_model(source, assets)
+        self.name = name or self.m.names[: self.m.names.index(b"\0")].decode() or (
+            Path(source).stem if isinstance(source, (str, Path)) else "scene"
+        )
+        x64 = bool(jax.config.jax_enable_x64)
+        if precision is None:
+            precision = "float64" if x64 else "float32"
+        if precision not in ("float32", "float64"):
+            raise MjstampError(
+                f"precision={precision!r} is not valid; valid: float32, float64"
+            )
+        if (precision == "float64") != x64:
+            # N.B. MJX allocates with JAX's default float type, so a float32 model
+            # in an x64 process is silently promoted back to float64.
+            raise MjstampError(
+                f"precision={precision!r} needs jax_enable_x64={not x64}; call "
+                f"jax.config.update('jax_enable_x64', {not x64}) before building "
+                "the Scene, or leave precision unset to follow that flag"
+            )
+        fields = dataclasses.asdict(grad_options or GradOptions())
+        fields.update(_options_from_custom(self.m))
+        unknown = set(overrides) - set(fields)
+        if unknown:
+            raise MjstampError(
+                f"unknown option {sorted(unknown)[0]!r}; valid: {valid_list(fields)}"
+            )
+        fields.update(overrides)
+        self.grad_options = GradOptions(**fields)
+        self.m_grad = self.grad_options.apply(self.m)
+        self.dtype = jnp.float64 if precision == "float64" else jnp.float32
+        self.precision = precision
+        self.mx = _cast(mjx.put_model(self.m_grad), self.dtype)
+        self._names = {
+            kind: {
+                mujoco.mj_id2name(self.m, obj, i): i
+                for i in range(getattr(self.m, count))
+                if mujoco.mj_id2name(self.m, obj, i)
+            }
+            for kind, (obj, count) in _NAME_KINDS.items()
+        }
+        self._rollouts: dict[Any, Any] = {}
+
+    @classmethod
+    def shipped(cls, name: str, **kwargs) -> Scene:
+        """Loads a scene shipped in `models/` by name (e.g. "billiards")."""
+        names = shipped_models()
+        if name not in names:
+            raise MjstampError(f"unknown scene {name!r}; valid: {valid_list(names)}")
+        return cls(package_model_path(f"{name}.xml"), name=name, **kwargs)
+
+    def __repr__(self) -> str:
+        m = self.m
+        return (
+            f"Scene({self.name!r}, nq={m.nq}, nv={m.nv}, nu={m.nu}, "
+            f"ngeom={m.ngeom}, precision={self.precision!r})"
+        )
+
+    # Names, resolved once at construction.
+
+    def names(self, kind: str) -> list[str]:
+        """All names of one kind: body, geom, joint, site or actuator."""
+        return list(self._names[kind])
+
+    def id(self, kind: str, name: str | int) -> int:
+        """Id of a named object; ints pass through after a range check."""
+        table = self._names[kind]
+        if isinstance(name, (int, np.integer)):
+            if 0 <= int(name) < getattr(self.m, _NAME_KINDS[kind][1]):
+                return int(name)
+        elif name in table:
+            return table[name]
+        raise MjstampError(
+            f"unknown {kind} {name!r} in scene {self.name!r} ({self._label}); "
+            f"valid: {valid_list(table)}"
+        )
+
+    def body(self, name: str | int) -> int:
+        """Body id."""
+        return self.id("body", name)
+
+    def geom(self, name: str | int) -> int:
+        """Geom id."""
+        return self.id("geom", name)
+
+    def joint(self, name: str | int) -> int:
+        """Joint id."""
+        return self.id("joint", name)
+
+    def site(self, name: str | int) -> int:
+        """Site id."""
+        return self.id("site", name)
+
+    def actuator(self, name: str | int) -> int:
+        """Actuator id."""
+        return self.id("actuator", name)
+
+    def qpos_adr(self, joint: str | int) -> int:
+        """Address in qpos of a joint's first coordinate."""
+        return int(self.m.jnt_qposadr[self.joint(joint)])
+
+    def dof_adr(self, joint: str | int) -> int:
+        """Address in qvel of a joint's first degree of freedom."""
+        return int(self.m.jnt_dofadr[self.joint(joint)])
+
+    def initial_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model's initial (qpos0, zero qvel), as float64 numpy arrays."""
+        return self.m.qpos0.copy(), np.zeros(self.m.nv)
+
+    def rollout_fn(self, horizon: int, **kwargs):
+        """A compiled batched rollout of this scene; see `rollout.build_rollout`.
+
+        Memoised per (horizon, options), so every caller shares one compiled
+        function; jax.jit itself caches one executable per batch size.
+        """
+        from mjstamp.scenes.rollout import build_rollout
+
+        key = (int(horizon), tuple(sorted(kwargs.items())))
+        if key not in self._rollouts:
+            self._rollouts[key] = build_rollout(self, horizon, **kwargs)
+        return self._rollouts[key]
+
+
+def _cast(tree, dtype):
+    """Casts the floating-point array leaves of an MJX pytree to `dtype`."""
+
+    def f(x):
+        if isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(
+            x.dtype, jnp.floating
+        ):
+            return jnp.asarray(x, dtype)
+        return x
+
+    return jax.tree_util.tree_map(f, tree)
