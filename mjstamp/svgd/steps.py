@@ -1,0 +1,435 @@
+"""SVGD, discrete SVGD and SGD steps: state plus pure functions, optax for updates.
+
+Every step has the signature `step(state, key) -> (state, info)` and is jit-able;
+the optimizer is any optax `GradientTransformation`, so Adam, clipping and
+schedules come free. SVGD *ascends* log ρ, optax *minimises*: the steps feed
+−φ to the optimizer as the "gradient" (blackjax does the same), so with
+`optax.sgd(ε)` one step is exactly θ_i ← θ_i + ε φ_i.
+
+How a task plugs in
+-------------------
+The log density is *batched*: `logdensity_fn(particles (n, d)) -> (n,)`, with the
+rollouts vmapped inside, and *particle-separable* (row i depends on particle i
+only). Per step the engine calls it once on the whole batch and takes the n
+scores ∇ log ρ(θ_i) from one reverse pass; the kernel then costs one n×n matrix
+and its gradient. So a step is n rollouts, never n².
+
+A task whose kernel needs features of the same rollout (billiards: the soft
+wall-hit indicators w(θ) of App. B-B) returns them alongside:
+`logdensity_fn(particles) -> (logp (n,), features (n, f))`, and uses
+`feature_kernel()` (no feature_fn). The step then gets log ρ, the features and
+all per-particle Jacobians ∂[log ρ, φ]/∂θ from one batched forward pass plus
+either 1+f batched pullbacks or d batched pushforwards (`jacobian=`), still n
+rollouts per step.
+
+References:
+  STAMP eq. (1) (SVGD), eq. (4) (discrete SVGD with importance weights),
+  Algorithm 1 (lines 6 and 10).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from mjstamp.svgd._jacobian import JacobianMode, check_mode, value_and_batched_jacobian
+from mjstamp.svgd.kernels import Kernel, flat_bandwidths, rbf
+
+__all__ = [
+    "SVGDState",
+    "StepInfo",
+    "init",
+    "build_svgd_step",
+    "build_dsvgd_step",
+    "build_sgd_step",
+    "stein_direction",
+    "importance_log_weights",
+]
+
+LogDensityFn = Callable[[jax.Array], Any]  # (n, d) -> (n,) or ((n,), (n, f))
+
+
+class SVGDState(NamedTuple):
+    """State of the SVGD, discrete SVGD and SGD steps.
+
+    Attributes:
+      particles: (n, d) array θ_{1:n}.
+      opt_state: the optax optimizer state.
+    """
+
+    particles: jax.Array
+    opt_state: optax.OptState
+
+
+class StepInfo(NamedTuple):
+    """Diagnostics of one step, all evaluated at the particles *before* it.
+
+    Attributes:
+      logdensity: (n,) log ρ(θ_i).
+      logdensity_mean: () mean of log ρ over particles where it is finite.
+      logdensity_max: () max of log ρ over particles where it is finite.
+      bandwidth: (g,) kernel bandwidths used (empty for SGD).
+      weights: (n,) normalised weights a_j of the Stein sum (1/n for SVGD,
+        w_j / Σw for discrete SVGD, 1/n for SGD).
+      learning_rate: () ε read from an `optax.inject_hyperparams` optimizer
+        state, NaN when the optimizer does not expose it.
+      displacement: () mean over particles of ‖θ_i(new) − θ_i‖.
+      n_nonfinite: () number of particles whose log ρ or gradient was NaN/inf;
+        they get zero score and zero weight this step.
+    """
+
+    logdensity: jax.Array
+    logdensity_mean: jax.Array
+    logdensity_max: jax.Array
+    bandwidth: jax.Array
+    weights: jax.Array
+    learning_rate: jax.Array
+    displacement: jax.Array
+    n_nonfinite: jax.Array
+
+
+def check_particles(particles: Any, *, min_particles: int = 2) -> None:
+    """Raises ValueError unless particles is a floating (n, d) array, n >= min_particles."""
+    shape = getattr(particles, "shape", None)
+    if shape is None or len(shape) != 2:
+        raise ValueError(
+            f"particles must be a 2-D array of shape (n, d); got shape {shape}"
+        )
+    n, d = shape
+    if n < min_particles:
+        raise ValueError(
+            f"particles: SVGD needs at least {min_particles} particles "
+            f"(n >= {min_particles}); got n={n}"
+        )
+    if d < 1:
+        raise ValueError(f"particles must have d >= 1 coordinates; got shape {shape}")
+    if not jnp.issubdtype(particles.dtype, jnp.floating):
+        raise ValueError(f"particles must be a floating array; got dtype {particles.dtype}")
+
+
+def init(particles: jax.Array, optimizer: optax.GradientTransformation) -> SVGDState:
+    """Initial state for any of the steps.
+
+    Args:
+      particles: (n, d) floating array, n >= 1 (SVGD steps need n >= 2).
+      optimizer: the optax transformation the step will use.
+
+    Returns:
+      SVGDState(particles, optimizer.init(particles)).
+    """
+    particles = jnp.asarray(particles)
+    check_particles(particles, min_particles=1)
+    return SVGDState(particles, optimizer.init(particles))
+
+
+# ----------------------------------------------------------------------------
+# Evaluating the batched log density
+
+
+def _split_output(out: Any, n: int) -> tuple[jax.Array, jax.Array | None]:
+    """(logp (n,), features (n, f) or None) from what logdensity_fn returned."""
+    if isinstance(out, tuple):
+        if len(out) != 2:
+            raise ValueError(
+                "logdensity_fn must return logp (n,) or (logp (n,), features (n, f)); "
+                f"got a tuple of {len(out)}"
+            )
+        logp, feats = out
+        if feats.ndim != 2 or feats.shape[0] != n:
+            raise ValueError(
+                f"logdensity_fn features must have shape (n, f) with n={n}; got {feats.shape}"
+            )
+    else:
+        logp, feats = out, None
+    if logp.shape != (n,):
+        raise ValueError(
+            f"logdensity_fn must return log-densities of shape (n,) = ({n},) for "
+            f"particles of shape (n, d); got {logp.shape}"
+        )
+    return logp, feats
+
+
+def _logp_and_score(logdensity_fn: LogDensityFn, x: jax.Array):
+    """log ρ (n,) and its n gradients (n, d) from one batched call and one pullback."""
+    n = x.shape[0]
+    logp, pullback = jax.vjp(lambda p: _split_output(logdensity_fn(p), n)[0], x)
+    (score,) = pullback(jnp.ones_like(logp))
+    return logp, score
+
+
+def _logp_score_features(logdensity_fn: LogDensityFn, x: jax.Array, mode: JacobianMode):
+    """log ρ, scores, features and their Jacobians from one batched call."""
+    n = x.shape[0]
+
+    def stacked(p):
+        logp, feats = _split_output(logdensity_fn(p), n)
+        if feats is None:
+            raise ValueError(
+                "the kernel reads features from the log density (feature_kernel "
+                "without feature_fn): logdensity_fn must return (logp (n,), features (n, f))"
+            )
+        return jnp.concatenate([logp[:, None], feats.astype(logp.dtype)], axis=1)
+
+    out, jac = value_and_batched_jacobian(stacked, x, mode)
+    return out[:, 0], jac[:, 0, :], (out[:, 1:], jac[:, 1:, :])
+
+
+def _finite_rows(*arrays: jax.Array) -> jax.Array:
+    ok = None
+    for a in arrays:
+        a_ok = jnp.all(jnp.isfinite(a.reshape(a.shape[0], -1)), axis=1)
+        ok = a_ok if ok is None else ok & a_ok
+    return ok
+
+
+def _zero_rows(a: jax.Array, ok: jax.Array) -> jax.Array:
+    return jnp.where(ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0.0)
+
+
+def importance_log_weights(log_surrogate: jax.Array, log_target: jax.Array) -> jax.Array:
+    """Normalised log weights log(w_j / Σ w) with w_j = ρ(x_j) / p(Γ(x_j)).
+
+    Computed in log space (a log-softmax), so weights of 1e±300 neither overflow
+    nor underflow. Entries where either input is not finite get weight 0; if no
+    entry is finite, all weights are 0 (log weight −inf).
+
+    Args:
+      log_surrogate: (n,) log ρ(x_j) = log p̃(Γ̃(x_j)) + const.
+      log_target: (n,) log p(Γ(x_j)) + const.
+
+    Returns:
+      (n,) log weights; exp of them sums to 1 (or 0 when nothing is finite).
+
+    References:
+      STAMP eq. (4).
+    """
+    log_w = log_surrogate - log_target
+    ok = jnp.isfinite(log_w)
+    log_w = jnp.where(ok, log_w, -jnp.inf)
+    safe = jnp.where(jnp.any(ok), log_w, 0.0)
+    return jnp.where(ok, jax.nn.log_softmax(safe), -jnp.inf)
+
+
+def stein_direction(
+    logdensity_fn: LogDensityFn,
+    kernel: Kernel,
+    particles: jax.Array,
+    *,
+    log_target_fn: Callable[[jax.Array], jax.Array] | None = None,
+    jacobian: JacobianMode = "auto",
+) -> tuple[jax.Array, StepInfo]:
+    """The Stein direction φ_i = Σ_j a_j [k(θ_j, θ_i) ∇log ρ(θ_j) + ∇_{θ_j} k(θ_j, θ_i)].
+
+    a_j = 1/n (SVGD, eq. (1)) or a_j = w_j / Σw with w_j = ρ(θ_j) / p(Γ(θ_j))
+    when log_target_fn is given (discrete SVGD, eq. (4)). Particles whose log ρ,
+    score or features are not finite get zero score and zero weight.
+
+    Args:
+      logdensity_fn: batched (n, d) -> (n,) log ρ, or (n, d) -> ((n,), (n, f))
+        when the kernel reads features from it.
+      kernel: a `Kernel`.
+      particles: (n, d), n >= 2.
+      log_target_fn: batched (n, d) -> (n,) log p(Γ(θ)), the discrete target at
+        the hard decode; no gradient is taken through it.
+      jacobian: 'auto', 'fwd' or 'rev': how to differentiate log ρ and the
+        features when the kernel reads features from the log density.
+
+    Returns:
+      (phi (n, d), info) with info.learning_rate and info.displacement NaN.
+
+    References:
+      STAMP eq. (1), eq. (4), Algorithm 1 line 6.
+    """
+    check_particles(particles)
+    x = particles
+    n = x.shape[0]
+    if kernel.uses_density_features:
+        logp, score, (feats, feats_jac) = _logp_score_features(logdensity_fn, x, jacobian)
+        ok = _finite_rows(logp, score, feats, feats_jac)
+        features = (_zero_rows(feats, ok), _zero_rows(feats_jac, ok))
+    else:
+        logp, score = _logp_and_score(logdensity_fn, x)
+        ok = _finite_rows(logp, score)
+        features = None
+    score = _zero_rows(score, ok)
+    if log_target_fn is None:
+        a = ok / jnp.maximum(jnp.sum(ok), 1)
+    else:
+        log_target = jax.lax.stop_gradient(log_target_fn(x))
+        if log_target.shape != (n,):
+            raise ValueError(
+                f"log_target_fn must return shape (n,) = ({n},); got {log_target.shape}"
+            )
+        log_w = importance_log_weights(jnp.where(ok, logp, jnp.nan), log_target)
+        a = jnp.exp(jax.lax.stop_gradient(log_w))
+    a = a.astype(x.dtype)
+    terms = kernel.evaluate(x, a, features=features)
+    # φ_i = Σ_j a_j k_ji s_j + Σ_j a_j ∇_{x_j} k_ji: one n×n product per term.
+    phi = (a[:, None] * terms.gram).T @ score + terms.repulsion
+    info = _info(logp, ok, flat_bandwidths(terms.params), a)
+    return phi, info
+
+
+def _info(logp, ok, bandwidth, weights) -> StepInfo:
+    count = jnp.sum(ok)
+    mean = jnp.sum(jnp.where(ok, logp, 0.0)) / jnp.maximum(count, 1)
+    return StepInfo(
+        logdensity=logp,
+        logdensity_mean=jnp.where(count > 0, mean, jnp.nan),
+        logdensity_max=jnp.max(jnp.where(ok, logp, -jnp.inf)),
+        bandwidth=bandwidth,
+        weights=weights,
+        learning_rate=jnp.asarray(jnp.nan, logp.dtype),
+        displacement=jnp.asarray(jnp.nan, logp.dtype),
+        n_nonfinite=logp.shape[0] - count,
+    )
+
+
+def _learning_rate(opt_state: Any) -> jax.Array:
+    try:
+        lr = optax.tree_utils.tree_get(opt_state, "learning_rate", default=None)
+    except KeyError:  # several learning rates in one chain: no single ε
+        lr = None
+    return jnp.asarray(jnp.nan if lr is None else lr, jnp.float32)
+
+
+def _apply(optimizer, state: SVGDState, direction: jax.Array, info: StepInfo):
+    """Ascends along `direction` with optax (which minimises −direction)."""
+    updates, opt_state = optimizer.update(-direction, state.opt_state, state.particles)
+    particles = optax.apply_updates(state.particles, updates)
+    info = info._replace(
+        learning_rate=_learning_rate(opt_state),
+        displacement=jnp.mean(jnp.linalg.norm(updates, axis=1)),
+    )
+    return SVGDState(particles, opt_state), info
+
+
+def build_svgd_step(
+    logdensity_fn: LogDensityFn,
+    kernel: Kernel | None,
+    optimizer: optax.GradientTransformation,
+    *,
+    jacobian: JacobianMode = "auto",
+) -> Callable[[SVGDState, jax.Array], tuple[SVGDState, StepInfo]]:
+    """Builds the SVGD step θ_i ← θ_i + ε φ_i (through `optimizer`).
+
+    Args:
+      logdensity_fn: batched log ρ, (n, d) -> (n,), or -> ((n,), (n, f)) for a
+        `feature_kernel()` that reads the features from it.
+      kernel: a `Kernel`; None for `rbf()` with the median heuristic.
+      optimizer: optax transformation; `optax.sgd(ε)` gives eq. (1) exactly.
+      jacobian: 'auto', 'fwd' or 'rev' (see `stein_direction`).
+
+    Returns:
+      A jit-able `step(state, key) -> (state, StepInfo)`; key is unused (the
+      update is deterministic) and kept for a uniform step signature.
+
+    References:
+      STAMP eq. (1); Algorithm 1 lines 5-6 with w_j = 1.
+    """
+    kernel = rbf() if kernel is None else kernel
+    _check_builder(logdensity_fn, kernel, optimizer, jacobian)
+
+    def step(state: SVGDState, key: jax.Array) -> tuple[SVGDState, StepInfo]:
+        del key
+        phi, info = stein_direction(logdensity_fn, kernel, state.particles, jacobian=jacobian)
+        return _apply(optimizer, state, phi, info)
+
+    return step
+
+
+def build_dsvgd_step(
+    logdensity_fn: LogDensityFn,
+    log_target_fn: Callable[[jax.Array], jax.Array],
+    kernel: Kernel | None,
+    optimizer: optax.GradientTransformation,
+    *,
+    jacobian: JacobianMode = "auto",
+) -> Callable[[SVGDState, jax.Array], tuple[SVGDState, StepInfo]]:
+    """Builds the weighted discrete-SVGD step of eq. (4).
+
+    φ_i = (1/w) Σ_j w_j [∇log ρ(θ_j) k_ji + ∇_{θ_j} k_ji], w_j = ρ(θ_j) / p(Γ(θ_j)),
+    where ρ ∝ p₀ p̃(Γ̃(θ)) is the smooth surrogate (logdensity_fn) and p(Γ(θ)) the
+    target at the hard decode (log_target_fn). With the uniform base p₀ the
+    ratio is p̃(Γ̃(θ_j)) / p(Γ(θ_j)) up to a constant, which the normalisation
+    removes.
+
+    Args:
+      logdensity_fn: batched log ρ (see `build_svgd_step`).
+      log_target_fn: batched (n, d) -> (n,) log p(Γ(θ)); no gradient is taken.
+      kernel: a `Kernel`; None for `rbf()`.
+      optimizer: optax transformation.
+      jacobian: 'auto', 'fwd' or 'rev'.
+
+    Returns:
+      A jit-able `step(state, key) -> (state, StepInfo)`.
+
+    References:
+      STAMP eq. (3), (4); Algorithm 1 line 6.
+    """
+    kernel = rbf() if kernel is None else kernel
+    _check_builder(logdensity_fn, kernel, optimizer, jacobian)
+    if not callable(log_target_fn):
+        raise ValueError(f"log_target_fn must be callable; got {log_target_fn!r}")
+
+    def step(state: SVGDState, key: jax.Array) -> tuple[SVGDState, StepInfo]:
+        del key
+        phi, info = stein_direction(
+            logdensity_fn,
+            kernel,
+            state.particles,
+            log_target_fn=log_target_fn,
+            jacobian=jacobian,
+        )
+        return _apply(optimizer, state, phi, info)
+
+    return step
+
+
+def build_sgd_step(
+    logdensity_fn: LogDensityFn,
+    optimizer: optax.GradientTransformation,
+) -> Callable[[SVGDState, jax.Array], tuple[SVGDState, StepInfo]]:
+    """Builds the SGD refinement step θ_i ← θ_i + ε ∇log ρ(θ_i) (through `optimizer`).
+
+    Particles no longer interact; features returned by logdensity_fn are
+    ignored (and pruned from the computation).
+
+    Args:
+      logdensity_fn: batched log ρ, (n, d) -> (n,) or ((n,), (n, f)).
+      optimizer: optax transformation.
+
+    Returns:
+      A jit-able `step(state, key) -> (state, StepInfo)`.
+
+    References:
+      STAMP §IV-B; Algorithm 1 line 10.
+    """
+    _check_builder(logdensity_fn, None, optimizer, "auto")
+
+    def step(state: SVGDState, key: jax.Array) -> tuple[SVGDState, StepInfo]:
+        del key
+        check_particles(state.particles, min_particles=1)
+        logp, score = _logp_and_score(logdensity_fn, state.particles)
+        ok = _finite_rows(logp, score)
+        n = logp.shape[0]
+        info = _info(logp, ok, jnp.zeros((0,), logp.dtype), jnp.full((n,), 1.0 / n))
+        return _apply(optimizer, state, _zero_rows(score, ok), info)
+
+    return step
+
+
+def _check_builder(logdensity_fn, kernel, optimizer, jacobian) -> None:
+    if not callable(logdensity_fn):
+        raise ValueError(f"logdensity_fn must be callable; got {logdensity_fn!r}")
+    if kernel is not None and not isinstance(kernel, Kernel):
+        raise ValueError(f"kernel must be a mjstamp.svgd Kernel or None; got {kernel!r}")
+    if not isinstance(optimizer, optax.GradientTransformation):
+        raise ValueError(
+            f"optimizer must be an optax.GradientTransformation; got {optimizer!r}"
+        )
+    check_mode(jacobian)
