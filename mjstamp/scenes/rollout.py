@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import mujoco
 import mujoco.rollout
 import numpy as np
-from mujoco import mjx
+from mjstamp.scenes._mjx import mjx
 
 from mjstamp.errors import MjstampError, valid_list
 

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
+from mjstamp.scenes._mjx import mjx
 
 from mjstamp.errors import MjstampError, valid_list
 
