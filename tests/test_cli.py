@@ -1,0 +1,39 @@
+"""The command line: one-line errors with exit status 2, JSON output."""
+
+import json
+
+import pytest
+
+from mjstamp.cli import main
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (["check", "nope"], "unknown scene 'nope'; valid: billiards, pushing"),
+        (["check", "/nonexistent/scene.xml"], "/nonexistent/scene.xml: MJCF file not found"),
+        (["check", "billiards", "--particles", "0"], "--particles=0 must be >= 1"),
+    ],
+)
+def test_bad_input_is_one_line_and_status_2(argv, expected, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"mjstamp: error: {expected}"]
+
+
+def test_malformed_mjcf_file(tmp_path, capsys):
+    path = tmp_path / "broken.xml"
+    path.write_text("<mujoco><worldbody>")
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "XML" in err[0]
+
+
+@pytest.mark.slow
+def test_check_json_is_the_only_stdout(capsys):
+    assert main(["check", "billiards", "--particles", "4", "--json", "--quiet"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["scene"] == "billiards" and report["particles"] == 4
+    assert report["nonfinite"] == 0
+    for key in ("nonfinite_fraction", "rel_err_median", "rel_err_p95", "us_per_particle_step"):
+        assert key in report
