@@ -29,6 +29,7 @@ References:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
@@ -246,7 +247,9 @@ def _check_x(x: jax.Array, what: str = "x") -> None:
 class Kernel:
     """Base class: a positive definite kernel on (n, D) particles.
 
-    Subclasses implement `evaluate` and `pairwise`; `gram` is derived.
+    Subclasses implement `evaluate` and `pairwise`; `gram` is derived. Kernels
+    are immutable and hash by identity (like functions), so they can be static
+    arguments of `jax.jit`.
     """
 
     #: True when the kernel reads features from the log density (see
@@ -290,7 +293,7 @@ class Kernel:
         return self.evaluate(x).gram
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class _Stationary(Kernel):
     """exp(−Σ_g ‖e(x)_g − e(y)_g‖² / s_g²) for an elementwise embedding e."""
 
@@ -385,7 +388,7 @@ class _Stationary(Kernel):
         return jnp.exp(self._log_pair(lam, x, y))
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class RBF(_Stationary):
     """RBF kernel k(x, y) = exp(−Σ_g ‖x_g − y_g‖² / s_g²), one bandwidth per group.
 
@@ -410,7 +413,7 @@ class RBF(_Stationary):
         return -jnp.sum(lam * (x - y) ** 2)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class VonMises(_Stationary):
     """Von Mises kernel for angles, k(x, y) = exp(Σ_D κ_D (cos(x_D − y_D) − 1)).
 
@@ -438,7 +441,7 @@ class VonMises(_Stationary):
         return jnp.sum(2.0 * lam * (jnp.cos(x - y) - 1.0))
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class SumKernel(Kernel):
     """k(x, y) = Σ_t α_t k_t(x[I_t], y[I_t]): a weighted sum over parts of x.
 
@@ -514,7 +517,7 @@ class SumKernel(Kernel):
         return total
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class FeatureKernel(Kernel):
     """k(θ, θ') = k₀(ψ(θ), ψ(θ')) with ψ(θ) = [θ, φ(θ)] (or φ(θ) alone).
 
@@ -707,11 +710,13 @@ def median_bandwidth(x: jax.Array, groups: Sequence[IndexSpec] | None = None) ->
     """
     x = jnp.asarray(x)
     _check_x(x)
-    kernel = rbf(groups)
+    groups = tuple(tuple(idx.tolist()) for idx in rbf(groups)._group_indices(x.shape[1]))
+    return _median_bandwidths(x, groups)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _median_bandwidths(x: jax.Array, groups: tuple[tuple[int, ...], ...]) -> jax.Array:
     x = x - jnp.mean(x, axis=0)
     return jnp.stack(
-        [
-            _median_bandwidth_from_sqdist(_sqdist(_take(x, idx)))
-            for idx in kernel._group_indices(x.shape[1])
-        ]
+        [_median_bandwidth_from_sqdist(_sqdist(_take(x, np.asarray(g)))) for g in groups]
     )
