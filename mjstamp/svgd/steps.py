@@ -291,7 +291,14 @@ def _info(logp, ok, bandwidth, weights) -> StepInfo:
 
 def _learning_rate(opt_state: Any) -> jax.Array:
     try:
-        lr = optax.tree_utils.tree_get(opt_state, "learning_rate", default=None)
+        # N.B. with a schedule, inject_hyperparams also keeps a schedule *state*
+        # under "learning_rate"; only the array is the rate.
+        lr = optax.tree_utils.tree_get(
+            opt_state,
+            "learning_rate",
+            default=None,
+            filtering=lambda _, value: hasattr(value, "dtype"),
+        )
     except KeyError:  # several learning rates in one chain: no single ε
         lr = None
     return jnp.asarray(jnp.nan if lr is None else lr, jnp.float32)
