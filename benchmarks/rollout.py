@@ -5,9 +5,10 @@ Prints one JSON object (with --json) holding, for N = 1, 64, 256, 1024 particles
 and of MuJoCo C stepping the same scene (`mujoco.rollout`, all cores) measured in
 the same run, with the ratios MJX / C (the figure that counts on a noisy, shared
 machine). It also times two fresh processes that build and run the
-value-and-grad rollout: one with an empty persistent compilation cache (cold)
-and one reusing it (warm); the issue's target is warm start-to-first-result
-within 10 s.
+value-and-grad rollout: one with empty caches (cold) and one reusing them
+(warm): JAX's persistent compilation cache and mjstamp's trace cache
+(`mjstamp.tracecache`). The issue's target is warm start-to-first-result within
+10 s.
 
 Usage: python benchmarks/rollout.py [--json] [--horizon 200] [--repeats 5]
 """
@@ -31,14 +32,19 @@ def _setup(cache_dir: str | None):
 
     jax.config.update("jax_enable_x64", True)
     if cache_dir:
+        # Both caches: compiled executables (JAX) and traced functions (mjstamp).
         jax.config.update("jax_compilation_cache_dir", cache_dir)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        os.environ["MJSTAMP_TRACE_CACHE"] = os.path.join(cache_dir, "trace")
     return jax
 
 
-def _functions(scene, horizon):
+def _functions(scene, horizon, example=None):
+    """Forward and value-and-grad rollouts; with `example`, via the trace cache."""
     import jax
     import jax.numpy as jnp
+
+    from mjstamp.tracecache import cached_jit
 
     rollout = scene.rollout_fn(horizon, fields=("qpos",))
     dofs = [scene.dof_adr("cue_x"), scene.dof_adr("cue_y")]
@@ -47,11 +53,12 @@ def _functions(scene, horizon):
         qvel0 = jnp.zeros((v.shape[0], scene.m.nv), v.dtype).at[:, dofs].set(v)
         return rollout(qpos0, qvel0)["qpos"]
 
-    forward = jax.jit(final_qpos)
-    value_and_grad = jax.jit(
-        jax.value_and_grad(lambda q, v: jnp.sum(final_qpos(q, v)[:, -1] ** 2), argnums=1)
-    )
-    return forward, value_and_grad
+    loss = lambda q, v: jnp.sum(final_qpos(q, v)[:, -1] ** 2)  # noqa: E731
+    value_and_grad = jax.value_and_grad(loss, argnums=1)
+    if example is not None:
+        key = f"benchmark-rollout billiards horizon={horizon}"
+        return None, cached_jit(value_and_grad, key, *example)
+    return jax.jit(final_qpos), jax.jit(value_and_grad)
 
 
 def _inputs(scene, n, seed=0):
@@ -113,8 +120,8 @@ def probe(cache_dir: str, horizon: int) -> None:
     from mjstamp.scenes import Scene
 
     scene = Scene.shipped("billiards")
-    _, value_and_grad = _functions(scene, horizon)
     qpos0, v = _inputs(scene, 64)
+    _, value_and_grad = _functions(scene, horizon, example=(qpos0, v))
     import jax
 
     jax.block_until_ready(value_and_grad(qpos0, v))
