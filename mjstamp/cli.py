@@ -64,6 +64,104 @@ def _cmd_check(args) -> int:
     return 0
 
 
+def _parse_settings(task_name: str, pairs: list[str]) -> dict:
+    """--set key=value pairs, typed like the task's defaults."""
+    from mjstamp import tasks
+
+    defaults = tasks.default_config(task_name)
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise MjstampError(f"--set {pair!r}: expected KEY=VALUE")
+        if key not in defaults:
+            raise MjstampError(
+                f"--set {key!r}: task {task_name!r} has no such setting; valid: "
+                + ", ".join(sorted(defaults))
+            )
+        kind = type(defaults[key])
+        try:
+            out[key] = kind(value)
+        except ValueError:
+            raise MjstampError(
+                f"--set {key}={value!r}: expected a {kind.__name__}"
+            ) from None
+    return out
+
+
+def _cmd_tasks(args) -> int:
+    from mjstamp import tasks
+
+    rows = tasks.summaries()
+    if args.json:
+        print(json.dumps(rows))
+        return 0
+    width = max(map(len, rows), default=0)
+    for name, summary in rows.items():
+        print(f"{name:<{width}}  {summary}")
+    return 0
+
+
+def _print_table(summary: dict) -> None:
+    rows = summary["task_plans"]
+    print(f"task {summary['task']}: {summary['particles']} particles, "
+          f"{summary['wall_time_s']:.1f} s; {summary['returned_plans']} plans returned, "
+          f"{summary['verified_fraction']:.0%} verified in MuJoCo C")
+    header = ("task plan", "plans found", "verified", "best cost", "verified share")
+    body = [
+        (r["task_plan"], str(r["plans"]), str(r["verified"]),
+         "-" if r["best_cost"] is None else f"{r['best_cost']:.3g}",
+         f"{r['verified_share']:.0%}")
+        for r in rows
+    ]
+    widths = [max(len(h), *(len(b[i]) for b in body)) if body else len(h)
+              for i, h in enumerate(header)]
+    line = "  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))
+    print(line)
+    print("-" * len(line))
+    for b in body:
+        print("  ".join(c.ljust(w) for c, w in zip(b, widths, strict=True)))
+    print(f"distinct verified task plans: {summary['distinct_verified_task_plans']} "
+          f"(symbol codes: {summary['distinct_verified_codes']})")
+    if "coverage" in summary:
+        detail = summary["coverage_detail"]
+        print(f"coverage: {summary['coverage']:.0%} of the {len(detail['feasible'])} task plans "
+              f"occupying >= {detail['min_share']:.1%} of the box"
+              + (f" (missed: {', '.join(detail['missed'])})" if detail["missed"] else ""))
+
+
+def _cmd_solve(args) -> int:
+    from mjstamp import modes, plans, tasks
+    from mjstamp.solve import solve
+
+    overrides = _parse_settings(args.task, args.set or [])
+    if args.particles is not None:
+        if args.particles < 2:
+            raise MjstampError(f"--particles={args.particles} must be >= 2")
+        overrides["particles"] = args.particles
+    out = plans.check_writable(args.out) if args.out else None
+    task, config = tasks.load(args.task, **overrides)
+    progress = None if not args.quiet else False
+    result = solve(task, config, seed=args.seed, progress=progress)
+    coverage = None
+    if modes.supports_sweep(task) and not args.no_coverage:
+        truth = modes.sweep(task, progress=progress)
+        found = [p for p, ok in zip(result.verified.plan, result.verified_mask(), strict=True)
+                 if ok]
+        coverage = modes.coverage(found, truth)
+    summary = result.summary(coverage)
+    if out is not None:
+        written = plans.save(out, summary, result.arrays())
+        if not args.json:
+            print(f"wrote {', '.join(str(p) for p in written)}", file=sys.stderr)
+    if args.json:
+        brief = {k: v for k, v in summary.items() if k not in ("plans", "declaration")}
+        print(json.dumps(brief))
+    else:
+        _print_table(summary)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for tests and docs)."""
     parser = argparse.ArgumentParser(
@@ -87,6 +185,23 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--json", action="store_true", help="print one JSON object")
     check.add_argument("--quiet", action="store_true", help="no progress on stderr")
     check.set_defaults(func=_cmd_check)
+
+    solve = sub.add_parser("solve", help="find diverse task and motion plans for a task")
+    solve.add_argument("task", help="registered task name (see `mjstamp tasks`)")
+    solve.add_argument("--particles", type=int, default=None, help="particles (plans) to move")
+    solve.add_argument("--seed", type=int, default=0)
+    solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here")
+    solve.add_argument("--json", action="store_true", help="print one JSON object")
+    solve.add_argument("--set", action="append", metavar="KEY=VALUE",
+                       help="override a task setting (repeatable)")
+    solve.add_argument("--no-coverage", action="store_true",
+                       help="skip the ground-truth sweep behind the coverage figure")
+    solve.add_argument("--quiet", action="store_true", help="no progress bars")
+    solve.set_defaults(func=_cmd_solve)
+
+    tasks = sub.add_parser("tasks", help="list the registered tasks")
+    tasks.add_argument("--json", action="store_true")
+    tasks.set_defaults(func=_cmd_tasks)
     return parser
 
 

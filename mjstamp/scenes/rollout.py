@@ -90,10 +90,13 @@ def build_rollout(
     m, mx, dtype = scene.m, scene.mx, scene.dtype
     nq, nv, nu = m.nq, m.nv, m.nu
     need_kinematics = any(f in POSE_FIELDS for f in fields)
-    d0 = jax.tree_util.tree_map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
-        mjx.make_data(mx),
-    )
+    # N.B. built eagerly even when first asked for inside a trace (a task's log
+    # posterior under jit): a traced d0 memoised in the scene would leak.
+    with jax.ensure_compile_time_eval():
+        d0 = jax.tree_util.tree_map(
+            lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
+            mjx.make_data(mx),
+        )
 
     def step(dx, u):
         dx = mjx.step(mx, dx.replace(ctrl=u))

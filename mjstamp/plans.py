@@ -1,0 +1,290 @@
+"""Plans: simulate particles (MJX or MuJoCo C), decode task plans, verify, group, save.
+
+A particle θ decodes into a motion plan (its continuous variables) and a task
+plan: the bits of its contact symbols (did geom1 touch geom2 before the first
+contact of the `before` pair?), its discrete actions (Γ: the max per phase),
+and the label of its success predicate (e.g. the pocket). Verification replays
+the plan in MuJoCo C with the scene's *own* solver settings (not the
+gradient-safe ones) and reads contacts and success from that replay.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import tempfile
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import mujoco.rollout
+import numpy as np
+
+from mjstamp.errors import MjstampError
+from mjstamp.scenes._mjx import mjx
+
+SCHEMA_VERSION = 1
+
+
+class Replay:
+    """States of n plans over T steps and their poses (numpy, float64).
+
+    Attributes:
+      qpos: (n, T, nq) positions after steps 1..T.
+      xpos: (n, T, nbody, 3) body positions.
+      site_xpos: (n, T, nsite, 3) site positions.
+      contacts: {(g1, g2): (n, T) bool}, signed distance < 0 (MuJoCo makes a
+        contact exactly then for geoms without margin).
+    """
+
+    def __init__(self, task, qpos: np.ndarray, source: str):
+        self.task = task
+        self.scene = task.scene
+        self.source = source
+        self.qpos = np.asarray(qpos, np.float64)
+        self.xpos, self.site_xpos, self.contacts = _poses_and_contacts(task, self.qpos)
+
+    def body_pos(self, body: str | int) -> np.ndarray:
+        """(n, T, 3) body position."""
+        return self.xpos[:, :, self.scene.body(body)]
+
+    def site_pos(self, site: str | int) -> np.ndarray:
+        """(n, T, 3) site position."""
+        return self.site_xpos[:, :, self.scene.site(site)]
+
+    def contact(self, geom1: str | int, geom2: str | int) -> np.ndarray:
+        """(n, T) whether the two geoms touch at each step."""
+        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
+        return self.contacts[(min(g1, g2), max(g1, g2))]
+
+
+def _contact_pairs(task) -> list[tuple[int, int]]:
+    pairs = []
+    for c in task.contacts:
+        for pair in ((c.geom1, c.geom2), c.before):
+            if pair is not None:
+                key = (min(pair), max(pair))
+                if key not in pairs:
+                    pairs.append(key)
+    return pairs
+
+
+@functools.lru_cache(maxsize=8)
+def _kinematics_fn(task):
+    """jit(vmap): qpos (B, nq) -> body, site positions and pair distances."""
+    scene = task.scene
+    d0 = mjx.make_data(scene.mx)
+    pairs = _contact_pairs(task)
+    fns = [task.distance_fn(*p) for p in pairs]
+
+    def one(qpos):
+        d = mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
+        dist = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else jnp.zeros(0)
+        return d.xpos, d.site_xpos, dist
+
+    return jax.jit(jax.vmap(one)), pairs
+
+
+def _poses_and_contacts(task, qpos: np.ndarray, chunk: int = 65536):
+    n, T, nq = qpos.shape
+    fn, pairs = _kinematics_fn(task)
+    flat = qpos.reshape(-1, nq)
+    outs = []
+    for start in range(0, len(flat), chunk):
+        part = flat[start : start + chunk]
+        pad = chunk - len(part) if len(flat) > chunk else 0
+        if pad:  # one compiled shape for every chunk
+            part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
+        out = jax.device_get(fn(jnp.asarray(part, task.scene.dtype)))
+        outs.append([np.asarray(o[: len(part) - pad], np.float64) for o in out])
+    xpos, site_xpos, dist = (np.concatenate(parts) for parts in zip(*outs, strict=True))
+    xpos = xpos.reshape(n, T, -1, 3)
+    site_xpos = site_xpos.reshape(n, T, -1, 3)
+    dist = dist.reshape(n, T, len(pairs))
+    contacts = {p: dist[:, :, i] < 0.0 for i, p in enumerate(pairs)}
+    return xpos, site_xpos, contacts
+
+
+def simulate_c(task, theta: np.ndarray) -> Replay:
+    """Replays particles θ (n, d) in MuJoCo C with the scene's own solver settings."""
+    scene = task.scene
+    theta = np.asarray(theta, np.float64)
+    params = task.unpack(theta)
+    qpos0, qvel0, ctrl = task.inputs(params, xp=np)
+    ctrl = np.asarray(ctrl, np.float64)
+    m = scene.m
+    n = theta.shape[0]
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    d = mujoco.MjData(m)
+    state0 = np.empty((n, mujoco.mj_stateSize(m, spec)))
+    for i in range(n):
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:] = qpos0[i], qvel0[i]
+        mujoco.mj_getState(m, d, state0[i], spec)
+    nthread = max(1, min(n, os.cpu_count() or 1))
+    datas = [mujoco.MjData(m) for _ in range(nthread)]
+    state, _ = mujoco.rollout.rollout(m, datas, state0, ctrl, nstep=task.horizon)
+    return Replay(task, state[..., 1 : 1 + m.nq], source="mujoco")
+
+
+def simulate_mjx(task, theta) -> Replay:
+    """Rolls particles θ (n, d) out in MJX (the planner's own, gradient-safe model)."""
+    params = task.unpack(jnp.asarray(theta, task.scene.dtype))
+    rollout = task.scene.rollout_fn(task.horizon, fields=("qpos",))
+    qpos = rollout(*task.inputs(params))["qpos"]
+    return Replay(task, np.asarray(qpos), source="mjx")
+
+
+@dataclasses.dataclass
+class Decoded:
+    """Task plans of n particles read off a replay.
+
+    Attributes:
+      ok: (n,) success predicate.
+      label: (n,) success label ("" where none).
+      bits: (n, n_symbols) int, the contact symbols.
+      actions: (n, n_phases) option names of the discrete variables.
+      plan: (n,) task-plan strings, e.g. "0110-top".
+      code: (n,) the symbol bits alone, e.g. "0110".
+    """
+
+    ok: np.ndarray
+    label: np.ndarray
+    bits: np.ndarray
+    actions: list[list[str]]
+    plan: np.ndarray
+    code: np.ndarray
+
+
+def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:
+    """Decodes task plans from a replay (symbols, actions, success label)."""
+    n, T = replay.qpos.shape[:2]
+    bits = np.zeros((n, len(task.contacts)), int)
+    for k, c in enumerate(task.contacts):
+        touch = replay.contact(c.geom1, c.geom2)
+        if c.before is not None:
+            first = replay.contact(*c.before)
+            t_c = np.where(first.any(axis=1), first.argmax(axis=1), T - 1)
+            touch = touch & (np.arange(T)[None] <= t_c[:, None])
+        bits[:, k] = touch.any(axis=1)
+    actions = [[] for _ in range(n)]
+    params = task.unpack(np.asarray(theta))
+    for v in task.variables:
+        if v.kind != "logits":
+            continue
+        m = len(v.options)
+        choice = np.asarray(params[v.name]).reshape(n, v.phases, m).argmax(axis=-1)
+        for i in range(n):
+            actions[i] += [v.options[j] for j in choice[i]]
+    if task.success_fn is not None:
+        ok, label = task.success_fn(replay)
+        ok = np.asarray(ok, bool)
+        label = np.asarray(label, dtype=object)
+    else:
+        ok, label = np.ones(n, bool), np.full(n, "", dtype=object)
+    code = np.array(["".join(map(str, b)) for b in bits], dtype=object)
+    plan = []
+    for i in range(n):
+        parts = [p for p in (code[i], ",".join(actions[i]), label[i]) if p]
+        plan.append("-".join(parts) or "-")
+    return Decoded(ok, label, bits, actions, np.array(plan, dtype=object), code)
+
+
+def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: Decoded):
+    """Rows of the result table: one per task plan found among returned plans.
+
+    Plans are grouped by the task plan of their MuJoCo C replay (what actually
+    happens); a row counts the returned plans with that task plan, how many of
+    them succeeded in C (verified), and the best MJX cost among the verified.
+    """
+    rows: dict[str, dict[str, Any]] = {}
+    for i in np.flatnonzero(returned):
+        key = verified.plan[i] if verified.ok[i] else f"{predicted.plan[i]} (failed)"
+        row = rows.setdefault(key, {
+            "task_plan": key, "code": verified.code[i], "plans": 0, "verified": 0,
+            "best_cost": None, "particles": [],
+        })
+        row["plans"] += 1
+        row["particles"].append(int(i))
+        if verified.ok[i]:
+            row["verified"] += 1
+            c = float(cost[i])
+            row["best_cost"] = c if row["best_cost"] is None else min(row["best_cost"], c)
+    out = sorted(rows.values(), key=lambda r: (-r["verified"], r["task_plan"]))
+    for r in out:
+        r["verified_share"] = r["verified"] / r["plans"]
+    return out
+
+
+# ----------------------------------------------------------------------------
+# Saving and loading.
+
+
+def check_writable(out: str | os.PathLike) -> Path:
+    """Creates `out` if needed and checks a file can be written there, up front."""
+    path = Path(out)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path, prefix=".write-test-")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise MjstampError(f"--out {str(path)!r} is not writable: {e.strerror or e}") from None
+    return path
+
+
+def write_atomic(path: Path, write) -> None:
+    """Writes a file via a temporary sibling and os.replace: never half-written."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save(out: Path, summary: dict, arrays: dict[str, dict[str, np.ndarray]]) -> list[Path]:
+    """Writes plans.json and one .npz per entry of `arrays`, each atomically."""
+    written = []
+    for name, data in arrays.items():
+        target = out / f"{name}.npz"
+        write_atomic(target, lambda f, d=data: np.savez_compressed(f, **d))
+        written.append(target)
+    target = out / "plans.json"
+    payload = json.dumps({"schema_version": SCHEMA_VERSION, **summary}, indent=2).encode()
+    write_atomic(target, lambda f: f.write(payload))
+    written.append(target)
+    return written
+
+
+def load(out: str | os.PathLike) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
+    """Loads what `save` wrote: (plans.json contents, {npz name: arrays})."""
+    path = Path(out)
+    plans = path / "plans.json"
+    if not plans.is_file():
+        raise MjstampError(f"{str(path)!r} holds no plans.json (not a results directory)")
+    summary = json.loads(plans.read_text())
+    version = summary.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise MjstampError(
+            f"{str(plans)!r} has schema_version {version!r}; this mjstamp reads "
+            f"{SCHEMA_VERSION}"
+        )
+    arrays = {}
+    for npz in sorted(path.glob("*.npz")):
+        with np.load(npz, allow_pickle=False) as f:
+            arrays[npz.stem] = {k: f[k] for k in f.files}
+    return summary, arrays
+
+
+def counts(plans: np.ndarray, ok: np.ndarray) -> Counter:
+    """Counter of task plans among successful entries."""
+    return Counter(p for p, good in zip(plans, ok, strict=True) if good)

@@ -1,0 +1,181 @@
+"""Solve a task: STAMP on its log posterior, then decode, verify and group the plans.
+
+Which plans are *returned*: the particles whose MJX rollout (the planner's own
+model) satisfies the task's success predicate; each is then replayed in MuJoCo
+C with the scene's own solver settings, and counts as *verified* when the
+predicate holds there too. The task plan of a verified plan is read off its C
+replay.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjstamp import plans as plans_mod
+from mjstamp import svgd
+from mjstamp.tracecache import cached_jit
+
+STAMP_KEYS = ("svgd_learning_rate", "sgd_learning_rate", "svgd_max_iters", "sgd_max_iters",
+              "min_iters")
+
+
+@dataclasses.dataclass
+class SolveResult:
+    """Everything a solve produced (see `summary` for the JSON view)."""
+
+    task: Any
+    config: dict
+    theta: np.ndarray
+    svgd_theta: np.ndarray
+    initial_theta: np.ndarray
+    cost: np.ndarray
+    returned: np.ndarray
+    predicted: plans_mod.Decoded
+    verified: plans_mod.Decoded
+    replay: plans_mod.Replay
+    diagnostics: svgd.StampDiagnostics
+    stamp: svgd.StampResult
+    rows: list[dict]
+    timings: dict[str, float]
+
+    @property
+    def verified_fraction(self) -> float:
+        """Share of returned plans whose MuJoCo C replay succeeds."""
+        n = int(self.returned.sum())
+        return float((self.verified.ok & self.returned).sum() / n) if n else 0.0
+
+    def verified_mask(self) -> np.ndarray:
+        """(n,) returned and verified in MuJoCo C."""
+        return self.returned & self.verified.ok
+
+    def summary(self, coverage: dict | None = None) -> dict:
+        """JSON-ready summary (also the body of plans.json)."""
+        ok = self.verified_mask()
+        found = sorted({p for p, good in zip(self.verified.plan, ok, strict=True) if good})
+        codes = sorted({c for c, good in zip(self.verified.code, ok, strict=True) if good})
+        out = {
+            "task": self.task.name,
+            "particles": int(self.theta.shape[0]),
+            "seed": int(self.config.get("seed", 0)),
+            "wall_time_s": self.timings["total_s"],
+            "timings": self.timings,
+            "returned_plans": int(self.returned.sum()),
+            "verified_plans": int(ok.sum()),
+            "verified_fraction": self.verified_fraction,
+            "distinct_verified_task_plans": len(found),
+            "distinct_verified_codes": len(codes),
+            "verified_codes": codes,
+            "task_plans": [
+                {k: r[k] for k in ("task_plan", "code", "plans", "verified", "verified_share",
+                                   "best_cost")}
+                for r in self.rows
+            ],
+            "plans": [
+                {
+                    "particle": int(i),
+                    "task_plan": self.verified.plan[i],
+                    "predicted_task_plan": self.predicted.plan[i],
+                    "verified": bool(self.verified.ok[i]),
+                    "cost": float(self.cost[i]),
+                    "motion_plan": {
+                        name: np.asarray(val[i]).tolist()
+                        for name, val in self.task.unpack(self.theta).items()
+                    },
+                }
+                for i in np.flatnonzero(self.returned)
+            ],
+            "stamp": {
+                "svgd_iters": self.stamp.svgd_iters,
+                "sgd_iters": self.stamp.sgd_iters,
+                "svgd_converged": self.stamp.svgd_converged,
+                "sgd_converged": self.stamp.sgd_converged,
+            },
+            "config": self.config,
+            "declaration": self.task.describe(),
+        }
+        if coverage is not None:
+            out["coverage"] = coverage["coverage"]
+            out["coverage_detail"] = coverage
+        return out
+
+    def arrays(self) -> dict[str, dict[str, np.ndarray]]:
+        """Arrays for the result files: particles.npz and trajectories.npz."""
+        d = self.diagnostics
+        particles = {
+            "theta": self.theta, "svgd_theta": self.svgd_theta,
+            "initial_theta": self.initial_theta, "cost": self.cost,
+            "returned": self.returned, "verified": self.verified.ok,
+            "logdensity_mean": d.logdensity_mean, "logdensity_max": d.logdensity_max,
+            "phase": d.phase, "displacement": d.displacement,
+        }
+        idx = np.flatnonzero(self.returned)
+        trajectories = {
+            "particle": idx,
+            "qpos": self.replay.qpos[idx],
+            "xpos": self.replay.xpos[idx],
+            "timestep": np.float64(self.task.scene.m.opt.timestep),
+        }
+        return {"particles": particles, "trajectories": trajectories}
+
+
+def _jit(fn, key: str, *example):
+    """jax.jit through the trace cache (a re-run skips tracing the rollouts)."""
+    return cached_jit(fn, key, *example)
+
+
+def solve(task, config: dict, *, seed: int = 0, progress: bool | None = None) -> SolveResult:
+    """Runs STAMP on `task`, then decodes, verifies and groups the plans.
+
+    Args:
+      task: a `Task`.
+      config: the task's config (particles, learning rates, iteration caps...).
+      seed: makes the run reproducible.
+      progress: tqdm bar; None shows it on a terminal.
+
+    Returns:
+      A `SolveResult`.
+    """
+    task.check()
+    t_start = time.perf_counter()
+    n = int(config["particles"])
+    key = jax.random.key(seed)
+    theta0 = task.initial_particles(key, n)
+    stamp_config = svgd.StampConfig(
+        seed=seed, **{k: config[k] for k in STAMP_KEYS if k in config}
+    )
+    result = svgd.run_stamp(
+        task.log_posterior, theta0, task.kernel(), stamp_config, progress=progress
+    )
+    jax.block_until_ready(result.particles)
+    t_stamp = time.perf_counter()
+
+    theta = np.asarray(result.particles, np.float64)
+    logp = jax.jit(lambda th: task.log_posterior(th)[0])(jnp.asarray(theta, task.scene.dtype))
+    cost = -np.asarray(logp, np.float64)
+    predicted_replay = plans_mod.simulate_mjx(task, theta)
+    predicted = plans_mod.decode(task, predicted_replay, theta)
+    t_decode = time.perf_counter()
+    replay = plans_mod.simulate_c(task, theta)
+    verified = plans_mod.decode(task, replay, theta)
+    t_verify = time.perf_counter()
+    returned = predicted.ok & np.isfinite(cost)
+    rows = plans_mod.group(cost, returned, predicted, verified)
+    timings = {
+        "stamp_s": t_stamp - t_start,
+        "decode_s": t_decode - t_stamp,
+        "verify_s": t_verify - t_decode,
+        "total_s": time.perf_counter() - t_start,
+    }
+    return SolveResult(
+        task=task, config={**config, "seed": seed}, theta=theta,
+        svgd_theta=np.asarray(result.svgd_particles, np.float64),
+        initial_theta=np.asarray(theta0, np.float64), cost=cost, returned=returned,
+        predicted=predicted, verified=verified, replay=replay,
+        diagnostics=result.diagnostics, stamp=result, rows=rows, timings=timings,
+    )

@@ -1,0 +1,124 @@
+"""A small library of costs (on MJX rollouts) and success predicates (on C replays).
+
+Costs are functions of a `Rollout` returning (n,) values; any JAX function of
+the rollout works the same way. Success predicates are functions of a
+`plans.Replay` (numpy) returning (ok (n,) bool, label (n,) str).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjstamp import relax
+
+
+def aim(geom1: str, geom2: str, *, temperature: float = 0.05):
+    """Aim loss: softmin over t ≤ t_c of the gap max(0, sd_t) between two geoms.
+
+    L_aim = Σ_{t ≤ t_c} σ_t L^(t), σ = softmax(−L / temperature), with
+    L^(t) = max(0, signed distance at t) (for two balls: |x_t − x'_t| − 2R)
+    and t_c the first contact of the pair.
+
+    Args:
+      geom1, geom2: geom names.
+      temperature: in metres; STAMP's σ = softmax(−L) is temperature 1, too flat
+        for distances of a metre or less, so a few centimetres by default.
+
+    References:
+      STAMP App. B-D.
+    """
+
+    def cost(r):
+        sd = r.signed_distance(geom1, geom2)
+        return relax.softmin_aggregate(
+            jax.nn.relu(sd), mask=r.until_contact(geom1, geom2), temperature=temperature
+        )
+
+    return cost
+
+
+def reach(body: str, sites: Sequence[str], *, when: str = "softmin", temperature: float = 0.01):
+    """Squared distance of a body to the nearest of several goal sites.
+
+    L = min_g ‖x_t − g‖² at the final step (`when="final"`, App. B-D's
+    L_target) or softmin-aggregated over the whole trajectory
+    (`when="softmin"`): passing through a goal counts, which matches a success
+    predicate that asks whether the body *enters* a goal region at any time.
+
+    Args:
+      body: body name.
+      sites: goal site names.
+      when: "final" or "softmin".
+      temperature: softmin temperature in m².
+
+    References:
+      STAMP App. B-D (target loss).
+    """
+    if when not in ("final", "softmin"):
+        raise ValueError(f"reach(when={when!r}); valid: final, softmin")
+
+    def cost(r):
+        x = r.body_pos(body)[..., :2]
+        goals = jnp.stack([r.site_pos(s)[..., :2] for s in sites], axis=-2)  # (n, T, g, 2)
+        d2 = jnp.min(jnp.sum((x[:, :, None] - goals) ** 2, axis=-1), axis=-1)  # (n, T)
+        if when == "final":
+            return d2[:, -1]
+        return relax.softmin_aggregate(d2, temperature=temperature)
+
+    return cost
+
+
+def control_effort():
+    """Mean squared control over the horizon, (1/T) Σ_t ‖u_t‖²."""
+
+    def cost(r):
+        ctrl = r.traj.get("ctrl")
+        if ctrl is None:
+            raise ValueError("control_effort needs the 'ctrl' rollout field")
+        return jnp.mean(jnp.sum(ctrl**2, axis=-1), axis=-1)
+
+    return cost
+
+
+def path_length(body: str):
+    """Length of a body's path, Σ_t ‖x_{t+1} − x_t‖ (smooth norm)."""
+
+    def cost(r):
+        x = r.body_pos(body)
+        step = jnp.diff(x, axis=1)
+        return jnp.sum(jnp.sqrt(jnp.sum(step**2, axis=-1) + 1e-12), axis=-1)
+
+    return cost
+
+
+def reaches(body: str, goals: Mapping[str, str], *, radius: float):
+    """Success predicate: the body's centre comes within `radius` of a goal site.
+
+    Args:
+      body: body name.
+      goals: {label: site name}; the label of the first goal reached becomes
+        part of the task plan (e.g. the pocket).
+      radius: in metres (planar distance, x and y).
+
+    Returns:
+      fn(replay) -> (ok (n,) bool, label (n,) str; "" where not reached).
+    """
+
+    def predicate(replay):
+        x = replay.body_pos(body)[..., :2]  # (n, T, 2)
+        labels = list(goals)
+        inside = np.stack(
+            [np.linalg.norm(x - replay.site_pos(goals[k])[..., :2], axis=-1) < radius
+             for k in labels], axis=-1)  # (n, T, g)
+        hit_any = inside.any(axis=-1)
+        ok = hit_any.any(axis=1)
+        first_t = np.argmax(hit_any, axis=1)
+        which = np.argmax(inside[np.arange(len(ok)), first_t], axis=-1)
+        label = np.where(ok, np.asarray(labels, dtype=object)[which], "")
+        return ok, label
+
+    return predicate

@@ -1,0 +1,523 @@
+"""Task: variables, symbols, costs and a success predicate declared on a Scene.
+
+A user writes a task in plain Python on top of a `Scene`:
+
+    task = Task("billiards", scene, horizon=150)
+    task.box("cue_velocity", low=[-4, -4], high=[4, 4], initial_qvel=("cue_x", "cue_y"))
+    for wall in ("wall_top", "wall_bottom", "wall_left", "wall_right"):
+        task.contact(wall, "cue", wall, before=("cue", "target"))
+    task.cost("aim", costs.aim("cue", "target"), weight=20.0)
+    task.cost("target", costs.reach("target", ["pocket_top", "pocket_bottom"]), weight=50.0)
+    task.success(costs.reaches("target", {"top": "pocket_top", ...}, radius=0.1))
+
+From that declaration the task builds the batched log posterior over θ
+(STAMP eq. 6-8: log ρ(θ) = −Σ_c β_c C_c(θ, x(θ)) + Σ_p log p_p(θ)), the kernel
+(App. B-C / C-B), initial particles, and the MuJoCo C verification of plans.
+A user never writes an SVGD update.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjstamp import relax
+from mjstamp.errors import MjstampError, valid_list
+from mjstamp.scenes.distance import make_distance_fn
+from mjstamp.scenes.scene import Scene
+
+KINDS = ("box", "angle", "logits")
+
+
+@dataclasses.dataclass(frozen=True)
+class Variable:
+    """A named block of θ.
+
+    Attributes:
+      name: unique name.
+      kind: "box" (bounded reals), "angle" (wrap-around) or "logits" (a discrete
+        choice of one of `options` in each of `phases` phases, relaxed to a
+        softmax one-hot per phase; STAMP §IV-A).
+      size: number of coordinates of θ it takes.
+      low, high: (size,) bounds; particles start uniform inside them.
+      qvel, qpos: addresses in qvel / qpos the variable sets at t = 0, or None.
+      options: names of the m options of a "logits" variable.
+      phases: K phases of a "logits" variable (size = m K).
+    """
+
+    name: str
+    kind: str
+    size: int
+    low: np.ndarray
+    high: np.ndarray
+    qvel: tuple[int, ...] | None = None
+    qpos: tuple[int, ...] | None = None
+    options: tuple[str, ...] = ()
+    phases: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class Contact:
+    """A symbol: "geom1 touches geom2" (up to the first contact of `before`).
+
+    Relaxed to the soft indicator of App. B-B,
+    w = sigmoid(Σ_t σ_t d_t), d_t = −α·sd_t + β, σ = softmax(d) over t ≤ t_c,
+    with sd_t the signed distance of the two geoms at step t.
+    """
+
+    name: str
+    geom1: int
+    geom2: int
+    before: tuple[int, int] | None
+    alpha: float
+    beta: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Term:
+    """A weighted cost or log-prior term."""
+
+    name: str
+    fn: Callable
+    weight: float
+
+
+class Rollout:
+    """What a cost sees: the batched MJX trajectory, θ's variables and the symbols.
+
+    Attributes:
+      scene: the `Scene`.
+      traj: {field: (n, T, ...)} arrays of the rollout (states after steps 1..T).
+      params: {variable name: (n, size)}.
+      symbols: {contact name: (n,)} soft indicators in (0, 1).
+    """
+
+    def __init__(self, task: Task, traj: dict, params: dict):
+        self.task = task
+        self.scene = task.scene
+        self.traj = traj
+        self.params = params
+        self.symbols: dict[str, jax.Array] = {}
+        self._sd: dict[tuple[int, int], jax.Array] = {}
+
+    def signed_distance(self, geom1: str | int, geom2: str | int) -> jax.Array:
+        """(n, T) signed distance between two geoms (negative in penetration)."""
+        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
+        key = (min(g1, g2), max(g1, g2))
+        if key not in self._sd:
+            fn = self.task.distance_fn(*key)
+            over_time = jax.vmap(jax.vmap(fn))
+            self._sd[key] = over_time(self.traj["geom_xpos"], self.traj["geom_xmat"])
+        return self._sd[key]
+
+    def until_contact(self, geom1: str | int, geom2: str | int) -> jax.Array:
+        """(n, T) mask of the steps up to and including the first contact."""
+        return relax.first_contact_mask(self.signed_distance(geom1, geom2) <= 0.0)
+
+    def body_pos(self, body: str | int) -> jax.Array:
+        """(n, T, 3) world position of a body."""
+        return self.traj["xpos"][:, :, self.scene.body(body)]
+
+    def site_pos(self, site: str | int) -> jax.Array:
+        """(n, T, 3) world position of a site."""
+        return self.traj["site_xpos"][:, :, self.scene.site(site)]
+
+
+class Task:
+    """A TAMP problem declared on a Scene; see the module docstring.
+
+    Attributes:
+      name: registry name.
+      scene: the `Scene`.
+      horizon: rollout steps T.
+      variables: declared `Variable`s, in θ order.
+      contacts: declared `Contact` symbols, in feature order.
+      costs, priors: weighted `Term`s.
+      kernel_weights: weights of the default kernel's parts ("continuous",
+        "angles", "actions", "symbols"); see `kernel()`.
+      bound_stiffness: weight of the soft box bounds, per unit of box width.
+    """
+
+    def __init__(self, name: str, scene: Scene, *, horizon: int, description: str = ""):
+        if int(horizon) < 1:
+            raise MjstampError(f"task {name!r}: horizon={horizon} must be >= 1")
+        self.name = name
+        self.scene = scene
+        self.horizon = int(horizon)
+        self.description = description
+        self.variables: list[Variable] = []
+        self.contacts: list[Contact] = []
+        self.costs: list[Term] = []
+        self.priors: list[Term] = []
+        self.controls_fn: Callable | None = None
+        self.success_fn: Callable | None = None
+        self.kernel_weights = {"continuous": 1.0, "angles": 1.0, "actions": 1.0, "symbols": 1.0}
+        self.bound_stiffness = 100.0
+        self._distance_fns: dict[tuple[int, int], Callable] = {}
+
+    # ------------------------------------------------------------------
+    # Declarations.
+
+    def _check_new(self, name: str, what: str) -> None:
+        taken = [v.name for v in self.variables] + [c.name for c in self.contacts]
+        taken += [t.name for t in self.costs + self.priors]
+        if not isinstance(name, str) or not name:
+            raise MjstampError(f"task {self.name!r}: {what} name must be a non-empty string")
+        if name in taken:
+            raise MjstampError(f"task {self.name!r}: {what} name {name!r} is already declared")
+
+    def _joint_addresses(self, joints, kind: str, size: int, var: str):
+        if joints is None:
+            return None
+        joints = (joints,) if isinstance(joints, str) else tuple(joints)
+        if len(joints) != size:
+            raise MjstampError(
+                f"task {self.name!r}: variable {var!r} has {size} coordinates but "
+                f"initial_{kind} names {len(joints)} joints"
+            )
+        adr = self.scene.dof_adr if kind == "qvel" else self.scene.qpos_adr
+        return tuple(adr(j) for j in joints)
+
+    def box(
+        self,
+        name: str,
+        low: Sequence[float],
+        high: Sequence[float],
+        *,
+        initial_qvel: Sequence[str] | None = None,
+        initial_qpos: Sequence[str] | None = None,
+    ) -> None:
+        """Declares bounded continuous coordinates (velocities, positions, goals).
+
+        Args:
+          name: variable name.
+          low, high: bounds, one per coordinate (low < high).
+          initial_qvel: joints whose initial velocity this variable sets.
+          initial_qpos: joints whose initial position this variable sets.
+        """
+        self._check_new(name, "variable")
+        low = np.atleast_1d(np.asarray(low, float))
+        high = np.atleast_1d(np.asarray(high, float))
+        if low.shape != high.shape or low.ndim != 1 or not np.all(high > low):
+            raise MjstampError(
+                f"task {self.name!r}: box {name!r} needs low < high of equal length; got "
+                f"low={low.tolist()}, high={high.tolist()}"
+            )
+        size = low.size
+        self.variables.append(Variable(
+            name, "box", size, low, high,
+            qvel=self._joint_addresses(initial_qvel, "qvel", size, name),
+            qpos=self._joint_addresses(initial_qpos, "qpos", size, name),
+        ))
+
+    def angle(self, name: str, size: int = 1, *, initial_qpos: Sequence[str] | None = None):
+        """Declares angles (radians, wrap-around; von Mises kernel)."""
+        self._check_new(name, "variable")
+        size = int(size)
+        if size < 1:
+            raise MjstampError(f"task {self.name!r}: angle {name!r} size={size} must be >= 1")
+        self.variables.append(Variable(
+            name, "angle", size, np.full(size, -np.pi), np.full(size, np.pi),
+            qpos=self._joint_addresses(initial_qpos, "qpos", size, name),
+        ))
+
+    def discrete(self, name: str, options: Sequence[str], *, phases: int = 1, bound: float = 3.0):
+        """Declares a discrete action: one of `options` in each of `phases` phases.
+
+        Relaxed to logits θ ∈ [−u, u]^{mK} with Γ̃ = softmax per phase and decoded
+        with Γ = one-hot of the max (STAMP §IV-A, App. A, u = `bound`).
+        """
+        self._check_new(name, "variable")
+        options = tuple(options)
+        if len(options) < 2 or int(phases) < 1:
+            raise MjstampError(
+                f"task {self.name!r}: discrete {name!r} needs >= 2 options and >= 1 phase; "
+                f"got {len(options)} options, phases={phases}"
+            )
+        size = len(options) * int(phases)
+        self.variables.append(Variable(
+            name, "logits", size, np.full(size, -bound), np.full(size, bound),
+            options=options, phases=int(phases),
+        ))
+
+    def contact(
+        self,
+        name: str,
+        geom1: str,
+        geom2: str,
+        *,
+        before: tuple[str, str] | None = None,
+        alpha: float = 100.0,
+        beta: float = 0.0,
+    ) -> None:
+        """Declares a symbol: geom1 touches geom2 (before the first `before` contact).
+
+        Args:
+          name: symbol name; its bit in the task plan follows declaration order.
+          geom1, geom2: geom names.
+          before: a geom pair; only steps up to its first contact count.
+          alpha: α > 0 of App. B-B, in 1/m: the indicator saturates within
+            about 5/α of contact.
+          beta: β of App. B-B (shift; 0 puts w = 1/2 at touching distance).
+        """
+        self._check_new(name, "symbol")
+        if not alpha > 0:
+            raise MjstampError(f"task {self.name!r}: contact {name!r} alpha={alpha} must be > 0")
+        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
+        self.distance_fn(g1, g2)  # unsupported geom pairs fail here, at declaration
+        pair = None
+        if before is not None:
+            pair = (self.scene.geom(before[0]), self.scene.geom(before[1]))
+            self.distance_fn(*pair)
+        self.contacts.append(Contact(name, g1, g2, pair, float(alpha), float(beta)))
+
+    def cost(self, name: str, fn: Callable[[Rollout], jax.Array], weight: float = 1.0):
+        """Adds weight · fn(rollout) to the cost C (likelihood, eq. 8); fn -> (n,)."""
+        self._add_term(self.costs, name, fn, weight, "cost")
+
+    def prior(self, name: str, fn: Callable[[dict], jax.Array], weight: float = 1.0):
+        """Adds weight · fn(params) to log p(θ) (eq. 7); fn({name: (n, size)}) -> (n,)."""
+        self._add_term(self.priors, name, fn, weight, "prior")
+
+    def _add_term(self, terms, name, fn, weight, what):
+        self._check_new(name, what)
+        if not callable(fn):
+            raise MjstampError(f"task {self.name!r}: {what} {name!r} must be callable")
+        if not (np.isfinite(weight) and weight >= 0):
+            raise MjstampError(
+                f"task {self.name!r}: {what} {name!r} weight={weight} must be finite and >= 0"
+            )
+        terms.append(Term(name, fn, float(weight)))
+
+    def controls(self, fn: Callable[[dict], jax.Array]) -> None:
+        """Sets the map params {name: (n, size)} -> controls (n, T, nu)."""
+        self.controls_fn = fn
+
+    def success(self, fn: Callable) -> None:
+        """Sets the success predicate on a MuJoCo C replay; see `plans.Replay`.
+
+        fn(replay) -> (ok (n,) bool, label (n,) str): whether each plan succeeds
+        and a label that becomes part of its task plan (e.g. the pocket).
+        """
+        self.success_fn = fn
+
+    # ------------------------------------------------------------------
+    # Layout of θ.
+
+    @property
+    def dim(self) -> int:
+        """Number of coordinates of θ."""
+        return sum(v.size for v in self.variables)
+
+    def slices(self) -> dict[str, slice]:
+        """{variable name: slice of θ}."""
+        out, start = {}, 0
+        for v in self.variables:
+            out[v.name] = slice(start, start + v.size)
+            start += v.size
+        return out
+
+    def unpack(self, theta: jax.Array) -> dict[str, jax.Array]:
+        """θ (n, d) -> {variable name: (n, size)}."""
+        return {name: theta[:, s] for name, s in self.slices().items()}
+
+    def check(self) -> None:
+        """Validates the declaration as a whole (called before solving)."""
+        if not self.variables:
+            raise MjstampError(f"task {self.name!r} declares no variables")
+        if not self.costs:
+            raise MjstampError(f"task {self.name!r} declares no costs")
+        if self.scene.m.nu and self.controls_fn is None:
+            # Zero controls are a valid choice, but say so explicitly.
+            pass
+
+    # ------------------------------------------------------------------
+    # What the engine needs.
+
+    def distance_fn(self, g1: int, g2: int) -> Callable:
+        """Signed distance function of a geom pair (see scenes.distance)."""
+        key = (min(g1, g2), max(g1, g2))
+        if key not in self._distance_fns:
+            try:
+                self._distance_fns[key] = make_distance_fn(self.scene.m, *key)
+            except (ValueError, KeyError) as e:
+                raise MjstampError(f"task {self.name!r}: {' '.join(str(e).split())}") from None
+        return self._distance_fns[key]
+
+    def fields(self) -> tuple[str, ...]:
+        """Rollout fields the costs may read."""
+        return ("qpos", "qvel", "xpos", "geom_xpos", "geom_xmat", "site_xpos")
+
+    def inputs(self, params: dict, xp=jnp):
+        """params -> (qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu))."""
+        m = self.scene.m
+        n = next(iter(params.values())).shape[0]
+        dtype = next(iter(params.values())).dtype
+        qpos = xp.broadcast_to(xp.asarray(m.qpos0, dtype), (n, m.nq))
+        qvel = xp.zeros((n, m.nv), dtype)
+        for v in self.variables:
+            for field, adr in (("qpos", v.qpos), ("qvel", v.qvel)):
+                if adr is None:
+                    continue
+                idx = np.asarray(adr)
+                if xp is np:
+                    target = qpos if field == "qpos" else qvel
+                    target = target.copy()
+                    target[:, idx] = params[v.name]
+                else:
+                    target = (qpos if field == "qpos" else qvel).at[:, idx].set(params[v.name])
+                if field == "qpos":
+                    qpos = target
+                else:
+                    qvel = target
+        if self.controls_fn is not None:
+            ctrl = self.controls_fn(params)
+        else:
+            ctrl = xp.zeros((n, self.horizon, m.nu), dtype)
+        return qpos, qvel, ctrl
+
+    def evaluate(self, theta: jax.Array) -> tuple[Rollout, dict[str, jax.Array]]:
+        """Rolls θ (n, d) out in MJX; returns the Rollout and each term's (n,) value."""
+        params = self.unpack(theta)
+        rollout = self.scene.rollout_fn(self.horizon, fields=self.fields())
+        traj = rollout(*self.inputs(params))
+        r = Rollout(self, traj, params)
+        for c in self.contacts:
+            mask = None if c.before is None else r.until_contact(*c.before)
+            r.symbols[c.name] = relax.soft_contact_indicator(
+                r.signed_distance(c.geom1, c.geom2), alpha=c.alpha, beta=c.beta, mask=mask
+            )
+        values = {t.name: t.fn(r) for t in self.costs}
+        values.update({t.name: t.fn(params) for t in self.priors})
+        values["bounds"] = self._bounds_penalty(params)
+        return r, values
+
+    def _bounds_penalty(self, params) -> jax.Array:
+        """Soft box bounds: κ Σ (relu(θ − high)² + relu(low − θ)²) / width²."""
+        total = 0.0
+        for v in self.variables:
+            if v.kind == "angle":
+                continue
+            x = params[v.name]
+            width = jnp.asarray(v.high - v.low, x.dtype)
+            over = jax.nn.relu(x - v.high) + jax.nn.relu(v.low - x)
+            total = total + jnp.sum((over / width) ** 2, axis=1)
+        return self.bound_stiffness * total
+
+    def cost_total(self, values: dict[str, jax.Array]) -> jax.Array:
+        """C(θ) = Σ β_c C_c + bounds − Σ β_p log p_p, from `evaluate`'s values."""
+        total = values["bounds"]
+        for t in self.costs:
+            total = total + t.weight * values[t.name]
+        for t in self.priors:
+            total = total - t.weight * values[t.name]
+        return total
+
+    def features(self, r: Rollout) -> jax.Array:
+        """Kernel features ψ(θ): continuous coordinates, angles, Γ̃ one-hots, symbols."""
+        parts = []
+        for v in self.variables:
+            x = r.params[v.name]
+            if v.kind == "logits":
+                x = relax.soft_onehot(x, len(v.options))
+            parts.append(x)
+        parts += [r.symbols[c.name][:, None] for c in self.contacts]
+        return jnp.concatenate(parts, axis=1)
+
+    def log_posterior(self, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Batched log ρ(θ | O = 1) and kernel features, from one rollout.
+
+        Args:
+          theta: (n, d) particles.
+
+        Returns:
+          logp: (n,) = −C(θ) (STAMP eq. 6-8).
+          features: (n, f) ψ(θ), see `features`.
+        """
+        r, values = self.evaluate(theta)
+        return -self.cost_total(values), self.features(r)
+
+    def feature_groups(self) -> dict[str, list[int]]:
+        """Indices of ψ per kernel part: continuous (per variable), angles, ..."""
+        groups: dict[str, list] = {"continuous": [], "angles": [], "actions": [], "symbols": []}
+        start = 0
+        for v in self.variables:
+            width = v.size
+            idx = list(range(start, start + width))
+            if v.kind == "box":
+                groups["continuous"].append(idx)
+            elif v.kind == "angle":
+                groups["angles"].append(idx)
+            else:
+                groups["actions"].append(idx)
+            start += width
+        if self.contacts:
+            groups["symbols"].append(list(range(start, start + len(self.contacts))))
+        return groups
+
+    def kernel(self):
+        """The default kernel on ψ(θ) (overridable by assigning `task.kernel`).
+
+        With only continuous variables and symbols, one RBF with a median
+        bandwidth per group: exp(−Σ_g ‖Δψ_g‖²/s_g²), App. B-C's kernel over
+        [v, w(v)]. Otherwise a weighted sum (App. C-B): RBF over the continuous
+        coordinates (a bandwidth per variable), von Mises over angles, RBF over
+        the softmax one-hots, RBF over the symbols, weighted by
+        `kernel_weights`.
+        """
+        from mjstamp import svgd
+
+        groups = self.feature_groups()
+        if not groups["angles"] and not groups["actions"]:
+            base = svgd.rbf(groups=groups["continuous"] + groups["symbols"])
+        else:
+            terms = []
+            for part, make in (
+                ("continuous", svgd.rbf), ("angles", svgd.von_mises),
+                ("actions", svgd.rbf), ("symbols", svgd.rbf),
+            ):
+                if not groups[part]:
+                    continue
+                flat = [i for g in groups[part] for i in g]
+                local, start = [], 0
+                for g in groups[part]:
+                    local.append(slice(start, start + len(g)))
+                    start += len(g)
+                terms.append((self.kernel_weights[part], make(groups=local), flat))
+            base = svgd.sum_kernels(terms)
+        return svgd.feature_kernel(base, include_inputs=False)
+
+    def initial_particles(self, key: jax.Array, n: int) -> jax.Array:
+        """n particles uniform in the bounds (logits: uniform base of App. A)."""
+        low = np.concatenate([v.low for v in self.variables])
+        high = np.concatenate([v.high for v in self.variables])
+        u = jax.random.uniform(key, (n, self.dim), dtype=self.scene.dtype)
+        return jnp.asarray(low, self.scene.dtype) + u * jnp.asarray(high - low, self.scene.dtype)
+
+    def describe(self) -> dict[str, Any]:
+        """A JSON-ready summary of the declaration."""
+        return {
+            "name": self.name,
+            "scene": self.scene.name,
+            "horizon": self.horizon,
+            "timestep": float(self.scene.m.opt.timestep),
+            "variables": [
+                {"name": v.name, "kind": v.kind, "size": v.size,
+                 "low": v.low.tolist(), "high": v.high.tolist(),
+                 **({"options": list(v.options), "phases": v.phases} if v.options else {})}
+                for v in self.variables
+            ],
+            "symbols": [c.name for c in self.contacts],
+            "costs": {t.name: t.weight for t in self.costs},
+            "priors": {t.name: t.weight for t in self.priors},
+        }
+
+
+def valid_names(items) -> str:
+    """Comma-separated names for error messages."""
+    return valid_list([i.name for i in items])
