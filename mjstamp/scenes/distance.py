@@ -61,6 +61,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjstamp.errors import MjstampError
+
 _G = mujoco.mjtGeom
 _PLANE = int(_G.mjGEOM_PLANE)
 _SPHERE = int(_G.mjGEOM_SPHERE)
@@ -396,7 +398,7 @@ def _pair_fn(type1: int, type2: int, what1: str, what2: str):
     swap = type1 > type2
     key = (type2, type1) if swap else (type1, type2)
     if key not in _PAIRS:
-        raise ValueError(
+        raise MjstampError(
             f"signed distance between {what1} and {what2} is not supported; "
             f"supported pairs: {_supported_list()}"
         )
@@ -452,10 +454,10 @@ def _geom_id(m: mujoco.MjModel, geom: str | int) -> int:
         if geom in names:
             return names.index(geom)
         valid = ", ".join(repr(n) for n in names if n) or "(no named geoms)"
-        raise ValueError(f"unknown geom {geom!r}; valid geom names: {valid}")
+        raise MjstampError(f"unknown geom {geom!r}; valid geom names: {valid}")
     gid = int(geom)
     if not 0 <= gid < m.ngeom:
-        raise ValueError(f"geom id {gid} out of range; the model has {m.ngeom} geoms")
+        raise MjstampError(f"geom id {gid} out of range; the model has {m.ngeom} geoms")
     return gid
 
 
@@ -491,7 +493,7 @@ def make_distance_fn(
     """
     g1, g2 = _geom_id(m, geom1), _geom_id(m, geom2)
     if g1 == g2:
-        raise ValueError(f"signed distance of {_describe(m, g1)} with itself")
+        raise MjstampError(f"signed distance of {_describe(m, g1)} with itself")
     t1, t2 = int(m.geom_type[g1]), int(m.geom_type[g2])
     fn, swap = _pair_fn(t1, t2, _describe(m, g1), _describe(m, g2))
     if swap:

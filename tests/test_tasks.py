@@ -1,0 +1,168 @@
+"""The task API on a tiny scene, billiards decoding and verification, result files."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mjstamp import plans, tasks
+from mjstamp.cli import main
+from mjstamp.errors import MjstampError
+from mjstamp.scenes import Scene
+from mjstamp.tasks import Task, costs
+
+# A puck on a plane table with one wall and a goal site: small enough to compile fast.
+TINY = """
+<mujoco model="tiny">
+  <option timestep="0.02" gravity="0 0 0"/>
+  <default><geom condim="1" solref="-5000 -5"/></default>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.1" pos="0 0 -0.05" contype="0" conaffinity="0"/>
+    <geom name="wall" type="box" pos="0.5 0 0" size="0.05 1 0.05"/>
+    <site name="goal" pos="-0.3 0.3 0" size="0.02"/>
+    <body name="puck">
+      <joint name="px" type="slide" axis="1 0 0" damping="0.05"/>
+      <joint name="py" type="slide" axis="0 1 0" damping="0.05"/>
+      <geom name="puck" type="sphere" size="0.04" mass="0.2"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def tiny_task(horizon=40):
+    task = Task("tiny", Scene(TINY, name="tiny"), horizon=horizon)
+    task.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
+    task.contact("wall", "puck", "wall")
+    task.cost("goal", costs.reach("puck", ["goal"]), weight=50.0)
+    task.success(costs.reaches("puck", {"goal": "goal"}, radius=0.1))
+    return task
+
+
+def test_declaration_errors_name_the_culprit():
+    task = Task("tiny", Scene(TINY, name="tiny"), horizon=10)
+    with pytest.raises(MjstampError, match="unknown geom 'nope'.*valid: floor, wall, puck"):
+        task.contact("c", "puck", "nope")
+    with pytest.raises(MjstampError, match="'plane'.*'floor'.*'plane'|plane.*plane"):
+        Task("t", Scene(TINY.replace('type="box"', 'type="plane"')), horizon=5).contact(
+            "c", "floor", "wall")
+    with pytest.raises(MjstampError, match=r"low < high.*low=\[1.0\], high=\[0.0\]"):
+        task.box("b", low=[1], high=[0])
+    with pytest.raises(MjstampError, match="2 coordinates but initial_qvel names 1"):
+        task.box("b", low=[0, 0], high=[1, 1], initial_qvel=("px",))
+    with pytest.raises(MjstampError, match="unknown joint 'pz'"):
+        task.box("b", low=[0], high=[1], initial_qvel=("pz",))
+    task.box("v", low=[0], high=[1])
+    with pytest.raises(MjstampError, match="'v' is already declared"):
+        task.box("v", low=[0], high=[1])
+    with pytest.raises(MjstampError, match="weight=-1"):
+        task.cost("c", costs.reach("puck", ["goal"]), weight=-1)
+    with pytest.raises(MjstampError, match="declares no costs"):
+        task.check()
+
+
+def test_registry_errors():
+    assert "billiards" in tasks.names()
+    with pytest.raises(MjstampError, match="unknown task 'nope'; valid: billiards"):
+        tasks.load("nope")
+    with pytest.raises(MjstampError, match="no setting 'bogus'"):
+        tasks.load("billiards", bogus=1)
+
+
+@pytest.fixture(scope="module")
+def billiards_task():
+    return tasks.load("billiards")[0]
+
+
+# Hand-made shots from the cue ball at (-0.5, -0.2) towards the target at (0.3, 0):
+# straight at it, and at its mirror image behind the top wall (ball centres
+# bounce at y = 0.5 - R = 0.46, so the image is at y = 0.92).
+STRAIGHT = np.array([0.8, 0.2]) / np.hypot(0.8, 0.2) * 2.0
+OFF_TOP = np.array([0.8, 1.12]) / np.hypot(0.8, 1.12) * 3.0
+# Shots found by a MuJoCo C sweep of the box that pocket the target ball.
+POCKETING = {
+    "0000-top": [2.87437186, 0.66331658],
+    "0000-bottom": [3.31658291, 0.98492462],
+    "1000-bottom": [1.78894472, 2.99497487],
+    "0100-top": [2.4321608, -2.75376884],
+}
+
+
+@pytest.mark.slow
+def test_billiards_decodes_hand_made_shots(billiards_task):
+    shots = np.array([STRAIGHT, OFF_TOP, *POCKETING.values()])
+    for simulate in (plans.simulate_c, plans.simulate_mjx):
+        decoded = plans.decode(billiards_task, simulate(billiards_task, shots), shots)
+        assert decoded.code[0] == "0000" and decoded.code[1] == "1000"
+        assert not decoded.ok[:2].any()  # neither pockets the target
+        assert list(decoded.plan[2:]) == list(POCKETING)
+        assert decoded.ok[2:].all()
+
+
+@pytest.mark.slow
+def test_billiards_contacts_match_mujoco_contact_list(billiards_task):
+    """Contacts read off poses equal MuJoCo's own contact list, step by step."""
+    import mujoco
+
+    m = billiards_task.scene.m
+    shot = np.array([POCKETING["1000-bottom"]])
+    replay = plans.simulate_c(billiards_task, shot)
+    d = mujoco.MjData(m)
+    d.qvel[:2] = shot[0]
+    cue, top = billiards_task.scene.geom("cue"), billiards_task.scene.geom("wall_top")
+    touching = []
+    for _ in range(billiards_task.horizon):
+        mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)  # contacts of the state after the step
+        touching.append(any({c.geom1, c.geom2} == {cue, top} for c in d.contact[: d.ncon]))
+    assert any(touching)
+    np.testing.assert_array_equal(replay.contact("cue", "wall_top")[0], touching)
+
+
+@pytest.mark.slow
+def test_tiny_task_solves_and_results_round_trip(tmp_path):
+    from mjstamp.solve import solve
+
+    task = tiny_task()
+    config = {"particles": 8, "svgd_max_iters": 15, "sgd_max_iters": 15, "min_iters": 5,
+              "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05}
+    result = solve(task, config, seed=0, progress=False)
+    summary = result.summary()
+    assert summary["particles"] == 8 and summary["task"] == "tiny"
+    assert result.theta.shape == (8, 2)
+    # Reaching the goal pays: the mean cost fell over the run.
+    d = result.diagnostics
+    assert d.logdensity_mean[-1] > d.logdensity_mean[0]
+    written = plans.save(tmp_path, summary, result.arrays())
+    assert {p.name for p in written} == {"plans.json", "particles.npz", "trajectories.npz"}
+    loaded, arrays = plans.load(tmp_path)
+    assert loaded == json.loads(json.dumps({"schema_version": 1, **summary}))
+    for name, data in result.arrays().items():
+        for key, value in data.items():
+            np.testing.assert_array_equal(arrays[name][key], value, err_msg=f"{name}.{key}")
+    assert not list(tmp_path.glob(".*"))  # no temporary files left behind
+
+
+def test_results_directory_errors(tmp_path):
+    with pytest.raises(MjstampError, match="no plans.json"):
+        plans.load(tmp_path)
+    (tmp_path / "plans.json").write_text(json.dumps({"schema_version": 0}))
+    with pytest.raises(MjstampError, match="schema_version 0; this mjstamp reads 1"):
+        plans.load(tmp_path)
+
+
+def test_solve_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    cases = [
+        (["solve", "nope"], "unknown task 'nope'; valid: billiards"),
+        (["solve", "billiards", "--set", "horizon=abc"], "--set horizon='abc': expected a int"),
+        (["solve", "billiards", "--set", "nokey=1"], "--set 'nokey': task 'billiards' has no"),
+        (["solve", "billiards", "--particles", "1"], "--particles=1 must be >= 2"),
+        (["solve", "billiards", "--out", str(blocker / "sub")], "is not writable"),
+    ]
+    for argv, expected in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and expected in err[0], (argv, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
