@@ -124,9 +124,17 @@ class SolveResult:
         return {"particles": particles, "trajectories": trajectories}
 
 
-def _jit(fn, key: str, *example):
-    """jax.jit through the trace cache (a re-run skips tracing the rollouts)."""
-    return cached_jit(fn, key, *example)
+def _jit(fn, task, name: str, *example):
+    """jax.jit, through the trace cache when the task has a `cache_key`.
+
+    Only registered tasks have one (their code is mjstamp's, whose source the
+    trace cache hashes, and their config is the key); a task declared in a
+    user's script may change without its key changing, so it is traced anew.
+    """
+    key = getattr(task, "cache_key", None)
+    if key is None:
+        return jax.jit(fn)
+    return cached_jit(fn, f"{key} {name}", *example)
 
 
 def solve(task, config: dict, *, seed: int = 0, progress: bool | None = None) -> SolveResult:
@@ -156,9 +164,17 @@ def solve(task, config: dict, *, seed: int = 0, progress: bool | None = None) ->
     t_stamp = time.perf_counter()
 
     theta = np.asarray(result.particles, np.float64)
-    logp = jax.jit(lambda th: task.log_posterior(th)[0])(jnp.asarray(theta, task.scene.dtype))
-    cost = -np.asarray(logp, np.float64)
-    predicted_replay = plans_mod.simulate_mjx(task, theta)
+    theta_j = jnp.asarray(theta, task.scene.dtype)
+
+    def final(th):
+        """Cost and MJX trajectory of the final particles, from one rollout."""
+        r, values = task.evaluate(th)
+        return task.cost_total(values), r.traj["qpos"]
+
+    final = _jit(final, task, "final", theta_j)
+    cost, qpos = jax.device_get(final(theta_j))
+    cost = np.asarray(cost, np.float64)
+    predicted_replay = plans_mod.Replay(task, np.asarray(qpos), source="mjx")
     predicted = plans_mod.decode(task, predicted_replay, theta)
     t_decode = time.perf_counter()
     replay = plans_mod.simulate_c(task, theta)

@@ -8,6 +8,7 @@ builds the task from its `default_config()` updated with the overrides
 from __future__ import annotations
 
 import importlib
+import json
 from collections.abc import Callable
 
 from mjstamp.errors import MjstampError, valid_list
@@ -62,7 +63,10 @@ def load(name: str, **overrides) -> tuple[Task, dict]:
             f"task {name!r} has no setting {unknown[0]!r}; valid: {valid_list(sorted(config))}"
         )
     config.update(overrides)
-    return _REGISTRY[name][1](config), config
+    task = _REGISTRY[name][1](config)
+    # Identifies what the task computes, for the trace cache (mjstamp.tracecache).
+    task.cache_key = f"task={name} config={json.dumps(config, sort_keys=True)}"
+    return task, config
 
 
 __all__ = [

@@ -158,6 +158,7 @@ class Task:
         self.success_fn: Callable | None = None
         self.kernel_weights = {"continuous": 1.0, "angles": 1.0, "actions": 1.0, "symbols": 1.0}
         self.bound_stiffness = 100.0
+        self.cache_key: str | None = None  # set by tasks.load for registered tasks
         self._distance_fns: dict[tuple[int, int], Callable] = {}
 
     # ------------------------------------------------------------------
