@@ -23,6 +23,15 @@ from mjstamp.svgd.kernels import (
     sum_kernels,
     von_mises,
 )
+from mjstamp.svgd.stamp import (
+    PHASE_SGD,
+    PHASE_SVGD,
+    StampConfig,
+    StampDiagnostics,
+    StampResult,
+    has_converged,
+    run_stamp,
+)
 from mjstamp.svgd.steps import (
     StepInfo,
     SVGDState,
@@ -35,6 +44,13 @@ from mjstamp.svgd.steps import (
 )
 
 __all__ = [
+    "PHASE_SGD",
+    "PHASE_SVGD",
+    "StampConfig",
+    "StampDiagnostics",
+    "StampResult",
+    "has_converged",
+    "run_stamp",
     "FeatureKernel",
     "Kernel",
     "KernelTerms",
