@@ -1,0 +1,169 @@
+"""Tests of the STAMP loop (run_stamp) and its convergence test."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from mjstamp.svgd import (
+    PHASE_SGD,
+    PHASE_SVGD,
+    StampConfig,
+    feature_kernel,
+    has_converged,
+    rbf,
+    run_stamp,
+)
+
+MODES = jnp.array([[2.0, 0.0], [-2.0, 0.0]])
+
+
+def two_modes(x):
+    """Batched log density with two unit-weight modes at (±2, 0), σ = 0.5."""
+    return jax.nn.logsumexp(-jnp.sum((x[:, None] - MODES[None]) ** 2, -1) / 0.5, axis=1)
+
+
+def uniform_init(key):
+    return jax.random.uniform(key, (60, 2), minval=-4.0, maxval=4.0)
+
+
+CONFIG = StampConfig(svgd_learning_rate=0.05, sgd_learning_rate=0.05, seed=3)
+
+
+@pytest.fixture(scope="module")
+def result():
+    return run_stamp(two_modes, uniform_init, rbf(), CONFIG, progress=False)
+
+
+def test_svgd_covers_both_modes_then_sgd_reaches_the_optima(result):
+    assert result.svgd_converged and result.sgd_converged
+    assert 0 < result.svgd_iters < CONFIG.svgd_max_iters
+    assert 0 < result.sgd_iters < CONFIG.sgd_max_iters
+    svgd = np.asarray(result.svgd_particles)
+    right = svgd[:, 0] > 0
+    assert 0.2 < right.mean() < 0.8  # diversity: both modes hold particles
+    # After SVGD the particles spread around each mode (σ = 0.5 per axis)...
+    assert 0.3 < svgd[right].std(0).min() and svgd[right].std(0).max() < 0.7
+    # ...after SGD they sit on the optima. N.B. the mixture's maxima are not
+    # exactly at ±2 (the other mode's tail pulls by ~e⁻³²): 1e-2 is ample.
+    final = np.asarray(result.particles)
+    nearest = np.asarray(MODES)[np.where(final[:, 0] > 0, 0, 1)]
+    np.testing.assert_allclose(final, nearest, atol=1e-2)
+
+
+def test_diagnostics_record_every_iteration_and_phase(result):
+    diag = result.diagnostics
+    t_svgd, total = result.svgd_iters, result.svgd_iters + result.sgd_iters
+    for field in diag:
+        assert len(field) == total
+    assert np.all(diag.phase[:t_svgd] == PHASE_SVGD)
+    assert np.all(diag.phase[t_svgd:] == PHASE_SGD)
+    assert diag.bandwidth.shape == (total, 1)
+    assert np.all(diag.bandwidth[:t_svgd] > 0) and np.all(np.isnan(diag.bandwidth[t_svgd:]))
+    np.testing.assert_allclose(diag.learning_rate, 0.05, rtol=1e-6)
+    assert np.all(diag.logdensity_max >= diag.logdensity_mean)
+    assert diag.logdensity_mean[-1] > diag.logdensity_mean[0] + 5
+    assert np.all(diag.n_nonfinite == 0)
+    # The switch happened because the test passed on the recorded history.
+    assert has_converged(
+        diag.logdensity_mean[:t_svgd],
+        diag.displacement[:t_svgd],
+        window=CONFIG.window,
+        rtol=CONFIG.rtol,
+        motion_tol=CONFIG.motion_tol,
+        min_iters=CONFIG.min_iters,
+    )
+
+
+def test_one_trace_per_phase_and_same_seed_same_run():
+    traces = []
+
+    def counted(x):
+        traces.append(x.shape)
+        return two_modes(x)
+
+    config = StampConfig(svgd_max_iters=40, sgd_max_iters=30, seed=5)
+    a = run_stamp(counted, uniform_init, None, config, progress=False)
+    assert traces == [(60, 2), (60, 2)]  # SVGD step and SGD step, each traced once
+    b = run_stamp(counted, uniform_init, None, config, progress=False)
+    np.testing.assert_array_equal(a.particles, b.particles)
+    np.testing.assert_array_equal(a.diagnostics.logdensity_mean, b.diagnostics.logdensity_mean)
+    c = run_stamp(two_modes, uniform_init, None, StampConfig(svgd_max_iters=40, sgd_max_iters=30, seed=6), progress=False)
+    assert not np.array_equal(a.particles, c.particles)
+
+
+def test_iteration_cap_is_the_fallback():
+    config = StampConfig(svgd_max_iters=15, sgd_max_iters=10, rtol=0.0, motion_tol=0.0)
+    res = run_stamp(two_modes, uniform_init, None, config, progress=False)
+    assert (res.svgd_iters, res.sgd_iters) == (15, 10)
+    assert not res.svgd_converged and not res.sgd_converged
+
+
+def test_discrete_svgd_and_density_features_plug_in():
+    def with_features(x):
+        return two_modes(x), jax.nn.sigmoid(4 * x[:, :1])  # "which side" feature
+
+    config = StampConfig(svgd_max_iters=20, sgd_max_iters=5)
+    res = run_stamp(
+        with_features,
+        uniform_init,
+        feature_kernel(),
+        config,
+        log_target_fn=lambda x: two_modes(jnp.round(x * 4) / 4),  # a coarse "hard" target
+        svgd_optimizer=optax.sgd(0.05),
+        progress=False,
+    )
+    assert res.diagnostics.bandwidth.shape == (25, 2)  # [θ] and [w(θ)] blocks
+    assert np.all(np.isfinite(res.particles))
+    assert np.all(np.isnan(res.diagnostics.learning_rate[:20]))  # optax.sgd: not exposed
+
+
+def test_progress_bar_in_interactive_use(capsys):
+    run_stamp(two_modes, uniform_init, None, StampConfig(svgd_max_iters=3, sgd_max_iters=2), progress=True)
+    assert "STAMP" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "means, moves, expected",
+    [
+        ([-5.0] * 30, [1e-4] * 30, True),
+        ([-5.0] * 25, [1e-4] * 25, False),  # fewer than W + 1 = 26 iterations
+        (list(np.linspace(-10, -5, 30)), [1e-4] * 30, False),  # still improving
+        ([-5.0] * 30, [1e-2] * 30, False),  # still moving
+        ([0.0] * 29 + [5e-4], [1e-4] * 30, True),  # near 0: absolute change
+        ([-5.0] * 29 + [float("nan")], [1e-4] * 30, False),
+    ],
+)
+def test_has_converged(means, moves, expected):
+    got = has_converged(means, moves, window=25, rtol=1e-3, motion_tol=1e-3, min_iters=10)
+    assert got is expected
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: StampConfig(svgd_learning_rate=0.0), r"svgd_learning_rate \(step size\) must be"),
+        (lambda: StampConfig(sgd_learning_rate=-1e-3), r"sgd_learning_rate \(step size\) must be"),
+        (lambda: StampConfig(window=0), r"window must be an integer >= 1"),
+        (lambda: StampConfig(svgd_max_iters=-1), r"svgd_max_iters must be an integer >= 0"),
+        (lambda: StampConfig(rtol=-1.0), r"rtol must be a float >= 0"),
+        (lambda: StampConfig(jacobian="central"), r"jacobian must be one of"),
+        (lambda: run_stamp(two_modes, jnp.zeros((5,)), progress=False), r"shape \(n, d\)"),
+        (lambda: run_stamp(two_modes, jnp.zeros((1, 2)), progress=False), r"n >= 2\); got n=1"),
+        (lambda: run_stamp(two_modes, jnp.zeros((4, 2)), config={}, progress=False), r"StampConfig"),
+        (
+            lambda: run_stamp(
+                lambda x: jnp.full(x.shape[0], jnp.nan), jnp.ones((4, 2)), progress=False
+            ),
+            r"NaN/inf .* for all 4 initial particles",
+        ),
+        (
+            lambda: run_stamp(two_modes, jnp.ones((4, 2)), rbf(groups=[[0]]), progress=False),
+            r"RBF groups must cover every coordinate 0..1",
+        ),
+    ],
+)
+def test_bad_input_raises_clear_value_error(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
