@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import pickle
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -56,37 +57,71 @@ def cache_dir() -> Path | None:
 def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
     """Returns `jax.jit(fn)`, traced at most once across processes for these shapes.
 
+    Arguments and results may be pytrees (NamedTuples, optax states, dicts) and
+    may hold PRNG key arrays: the exported function works on their flattened
+    leaves (keys as their raw data), and the result's tree structure is stored
+    beside it.
+
     Args:
       fn: a function of arrays (pytrees of arrays) to arrays; every value it
         closes over must be captured by `key`.
       key: identifies what `fn` computes (model, options, sizes...).
-      *example_args: arrays (or ShapeDtypeStructs) with the shapes and dtypes
+      *example_args: arrays (or pytrees of arrays) with the shapes and dtypes
         the returned function will be called with.
 
     Returns:
       A callable with the signature of `fn`, for those shapes only.
     """
-    jitted = jax.jit(fn)
     folder = cache_dir()
     if folder is None:
-        return jitted
-    shapes = jax.tree_util.tree_map(lambda x: (tuple(x.shape), str(x.dtype)), example_args)
+        return jax.jit(fn)
+    leaves, in_tree = jax.tree_util.tree_flatten(example_args)
+    is_key = [jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) for x in leaves]
+    raw = [jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key, strict=True)]
+    shapes = [(tuple(x.shape), str(x.dtype)) for x in leaves]
     h = hashlib.sha256()
-    for part in (key, repr(shapes), str(jax.config.jax_enable_x64), _versions(), _source_hash(),
-                 jax.default_backend()):
+    for part in (key, repr(shapes), str(in_tree), str(jax.config.jax_enable_x64), _versions(),
+                 _source_hash(), jax.default_backend()):
         h.update(part.encode())
         h.update(b"\0")
     path = folder / f"{h.hexdigest()[:32]}.jaxexport"
-    exported = None
-    if path.is_file():
-        try:
-            exported = jax.export.deserialize(bytearray(path.read_bytes()))
-        except Exception:  # noqa: BLE001 - a corrupt entry is rebuilt, never fatal
-            exported = None
-    if exported is None:
-        exported = jax.export.export(jitted)(*example_args)
-        _write_atomic(path, exported.serialize())
-    return jax.jit(exported.call)
+    out_tree_box: list = []
+
+    def flat_fn(*xs):
+        xs = [jax.random.wrap_key_data(x) if k else x for x, k in zip(xs, is_key, strict=True)]
+        out = fn(*jax.tree_util.tree_unflatten(in_tree, xs))
+        out_leaves, out_tree = jax.tree_util.tree_flatten(out)
+        out_tree_box.append(out_tree)
+        return out_leaves
+
+    entry = _read(path)
+    if entry is None:
+        exported = jax.export.export(jax.jit(flat_fn))(*raw)
+        entry = (exported, out_tree_box[-1])
+        payload = pickle.dumps({"export": bytes(exported.serialize()), "out_tree": entry[1]})
+        _write_atomic(path, payload)
+    exported, out_tree = entry
+    call = jax.jit(exported.call)
+
+    def cached(*args):
+        xs = jax.tree_util.tree_leaves(args)
+        xs = [jax.random.key_data(x) if k else x for x, k in zip(xs, is_key, strict=True)]
+        return jax.tree_util.tree_unflatten(out_tree, call(*xs))
+
+    return cached
+
+
+def _read(path: Path):
+    """(Exported, output treedef) from a cache entry, or None if absent or bad."""
+    if not path.is_file():
+        return None
+    try:
+        # N.B. pickle only for the result's tree structure; the entry lives in
+        # the user's own cache folder, written by this module.
+        entry = pickle.loads(path.read_bytes())
+        return jax.export.deserialize(bytearray(entry["export"])), entry["out_tree"]
+    except Exception:  # noqa: BLE001 - a corrupt or stale entry is rebuilt, never fatal
+        return None
 
 
 def _write_atomic(path: Path, data: bytes) -> None:

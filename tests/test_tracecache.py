@@ -38,3 +38,29 @@ def test_corrupt_entry_is_rebuilt_and_cache_can_be_disabled(tmp_path, monkeypatc
     assert entry.read_bytes() != b"not an export"
     monkeypatch.setenv("MJSTAMP_TRACE_CACHE", "0")
     assert tracecache.cache_dir() is None
+
+
+def test_pytrees_and_prng_keys_round_trip(tmp_path, monkeypatch):
+    """Step functions take (state NamedTuple, PRNG key) and return pytrees."""
+    import jax
+    import optax
+
+    from mjstamp.svgd import init
+
+    monkeypatch.setenv("MJSTAMP_TRACE_CACHE", str(tmp_path))
+    opt = optax.inject_hyperparams(optax.adam)(learning_rate=0.1)
+    state = init(jnp.ones((4, 2)), opt)
+    key = jax.random.key(3)
+
+    def step(state, key):
+        noise = jax.random.normal(key, state.particles.shape)
+        return state._replace(particles=state.particles + noise), {"mean": noise.mean()}
+
+    expected = step(state, key)
+    for _ in range(2):  # written, then read back
+        got = tracecache.cached_jit(step, "test-step", state, key)(state, key)
+        assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(expected)
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(expected),
+                        strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-12)
+    assert len(list(tmp_path.glob("*.jaxexport"))) == 1
