@@ -42,6 +42,7 @@ def class_statistics(mixture, theta: np.ndarray) -> dict:
 
 
 def plot(mixture, before: np.ndarray, after: np.ndarray, path: str, iters: int) -> None:
+    """Draws the before/after scatter plots over the mixture contours to `path`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -75,13 +76,16 @@ def plot(mixture, before: np.ndarray, after: np.ndarray, path: str, iters: int) 
         ax.set_xlim(-7, 7)
         ax.set_ylim(-7, 7)
     axes[1].legend(loc="upper right", fontsize=8)
-    fig.suptitle("Discrete-and-continuous SVGD on a labelled Gaussian mixture (STAMP Fig. 1)")
+    fig.suptitle(
+        "Discrete-and-continuous SVGD on a labelled Gaussian mixture (STAMP Fig. 1)"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
 def main(argv=None) -> int:
+    """Runs the reproduction, writes the PNG and prints statistics; returns 0."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="figure1.png", help="PNG path to write")
     parser.add_argument("--seed", type=int, default=0)
@@ -93,7 +97,9 @@ def main(argv=None) -> int:
     if args.iters < 1:
         parser.error("--iters must be >= 1")
     mixture = figure1_mixture()
-    theta0, state, _ = run_figure1(jax.random.key(args.seed), n=args.n, iters=args.iters)
+    theta0, state, _ = run_figure1(
+        jax.random.key(args.seed), n=args.n, iters=args.iters
+    )
     before, after = np.asarray(theta0), np.asarray(state.particles)
     plot(mixture, before, after, args.out, args.iters)
     report = {"png": args.out, "seed": args.seed, "n": args.n, "iters": args.iters}

@@ -54,6 +54,7 @@ def _time_loop(step, state, steps: int) -> float:
 
 
 def bench(n: int, d: int, *, repeats: int, steps: int, learning_rate: float = 1e-2):
+    """Times one SVGD step of both libraries at n particles in d dimensions."""
     key = jax.random.key(n * 1000 + d)
     k_target, k_init = jax.random.split(key)
     logp = make_target(d, k_target)
@@ -67,7 +68,9 @@ def bench(n: int, d: int, *, repeats: int, steps: int, learning_rate: float = 1e
     bj_state = blackjax_svgd.init(particles, {"length_scale": length_scale}, optimizer)
 
     # mjstamp: same kernel with bandwidth s = √length_scale, batched log density.
-    mj_raw = build_svgd_step(jax.vmap(logp), rbf(bandwidth=length_scale**0.5), optimizer)
+    mj_raw = build_svgd_step(
+        jax.vmap(logp), rbf(bandwidth=length_scale**0.5), optimizer
+    )
     mj_step = jax.jit(lambda s: mj_raw(s, None)[0])
     mj_state = init(particles, optimizer)
 
@@ -93,6 +96,7 @@ def bench(n: int, d: int, *, repeats: int, steps: int, learning_rate: float = 1e
 
 
 def main(argv=None) -> int:
+    """Runs the benchmark over the sizes and prints a table or JSON; returns 0."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print JSON to stdout")
     parser.add_argument("--repeats", type=int, default=7, help="timed repeats per size")
@@ -117,13 +121,14 @@ def main(argv=None) -> int:
         row = bench(n, d, repeats=args.repeats, steps=steps)
         row["steps_per_repeat"] = steps
         results.append(row)
-        if not args.json:
-            print(
-                f"n={n:5d} d={d:3d}  mjstamp {row['mjstamp_s_per_step'] * 1e3:8.3f} ms  "
-                f"blackjax {row['blackjax_s_per_step'] * 1e3:8.3f} ms  "
-                f"ratio {row['ratio']:6.2f}  |Δ|={row['max_abs_diff_one_step']:.1e}",
-                file=sys.stderr if args.json else sys.stdout,
-            )
+        # With --json the table goes to stderr, so stdout stays pure JSON.
+        print(
+            f"n={n:5d} d={d:3d}  "
+            f"mjstamp {row['mjstamp_s_per_step'] * 1e3:8.3f} ms  "
+            f"blackjax {row['blackjax_s_per_step'] * 1e3:8.3f} ms  "
+            f"ratio {row['ratio']:6.2f}  |Δ|={row['max_abs_diff_one_step']:.1e}",
+            file=sys.stderr if args.json else sys.stdout,
+        )
     report = {
         "benchmark": "svgd_step",
         "kernel": "rbf, fixed bandwidth",

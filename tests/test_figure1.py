@@ -22,10 +22,13 @@ def figure1_run():
 
 def _component(theta):
     """Index of the component with the largest π_c N_c(x) at each particle."""
-    return np.asarray(component_log_densities(MIXTURE, jnp.asarray(theta[:, :2]))).argmax(1)
+    return np.asarray(
+        component_log_densities(MIXTURE, jnp.asarray(theta[:, :2]))
+    ).argmax(1)
 
 
 def test_particles_end_in_the_components_with_the_right_labels(figure1_run):
+    """Labels fixed, per-class means and spreads match the components."""
     theta0, theta, infos = figure1_run
     assert infos.logdensity_mean.shape == (500,)
     labels0, labels = theta0[:, 2:].argmax(1), theta[:, 2:].argmax(1)
@@ -37,29 +40,34 @@ def test_particles_end_in_the_components_with_the_right_labels(figure1_run):
         x = theta[labels == c, :2]
         mu, sd = np.asarray(MIXTURE.means[c]), np.asarray(MIXTURE.stds[c])
         # The smallest class holds ~70 particles: an iid sample mean would err by
-        # σ/√70 ≈ 0.06; 0.15 is 2.5 of those (seeds 0-3 give ≤ 0.05).
+        # σ/√70 ≈ 0.06; 0.15 is 2.5 of those (seeds 0-5, float32 and float64:
+        # at most 0.06).
         np.testing.assert_allclose(x.mean(0), mu, atol=0.15)
         # SVGD with a median bandwidth and finite n is biased in spread; seeds
-        # 0-3 give std/σ in [1.01, 1.06]. The band allows for that bias.
+        # 0-5 in both precisions give std/σ in [1.00, 1.19], bar one run where
+        # a single straggler of the smallest class gives 1.59.
         ratio = x.std(0) / sd
         assert np.all((ratio > 0.85) & (ratio < 1.2)), (c, ratio)
 
 
 def test_class_proportions(figure1_run):
+    """Class shares follow the initial basins and, loosely, π."""
     theta0, theta, _ = figure1_run
     labels = theta[:, 2:].argmax(1)
     share = np.array([np.mean(labels == c) for c in range(3)])
     basin = np.array([np.mean(_component(theta0) == c) for c in range(3)])
     # SVGD barely moves particles between components 8σ apart, so each class
-    # ends with about the share of initial positions in its basin (seeds 0-3:
-    # within 0.04) ...
-    np.testing.assert_allclose(share, basin, atol=0.06)
-    # ... and those shares differ from π = (0.5, 0.3, 0.2) by up to 0.1 for a
-    # uniform initial box (basins 0.42 / 0.31 / 0.28): hence the loose bound.
+    # ends with about the share of initial positions in its basin (seeds 0-5,
+    # float32 and float64: within 0.067) ...
+    np.testing.assert_allclose(share, basin, atol=0.08)
+    # ... and for a uniform initial box those shares (0.42 / 0.31 / 0.28 on
+    # average) differ from π = (0.5, 0.3, 0.2): seeds 0-5 deviate by up to
+    # 0.12, hence the loose bound.
     np.testing.assert_allclose(share, np.asarray(MIXTURE.weights), atol=0.15)
 
 
 def test_script_writes_the_png(tmp_path, capsys):
+    """benchmarks/figure1.py writes a PNG and prints its statistics."""
     path = pathlib.Path(__file__).parents[1] / "benchmarks" / "figure1.py"
     spec = importlib.util.spec_from_file_location("figure1_script", path)
     script = importlib.util.module_from_spec(spec)

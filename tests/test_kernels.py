@@ -77,13 +77,18 @@ def _reference(kernel, params, x, a):
 
 @pytest.mark.parametrize("name", sorted(KERNELS))
 def test_closed_form_matches_autodiff_and_gram_is_positive_definite(name):
-    """R_i = Σ_j a_j ∇_{x_j} k(x_j, x_i) (through φ too); K symmetric, PD, k(x,x) fixed."""
+    """Closed-form repulsion equals autodiff (through φ too); K is symmetric and PD.
+
+    R_i = Σ_j a_j ∇_{x_j} k(x_j, x_i); the diagonal k(x, x) is the sum of weights.
+    """
     with jax.enable_x64(True):
         kernel = KERNELS[name]()
         x = _points(n=40)
         a = jax.nn.softmax(jax.random.normal(jax.random.key(1), (40,)))
         terms = jax.jit(kernel.evaluate)(x, a)
-        gram, repulsion = jax.jit(_reference, static_argnums=0)(kernel, terms.params, x, a)
+        gram, repulsion = jax.jit(_reference, static_argnums=0)(
+            kernel, terms.params, x, a
+        )
         np.testing.assert_allclose(terms.gram, gram, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(terms.repulsion, repulsion, rtol=1e-10, atol=1e-13)
         assert np.all(np.asarray(flat_bandwidths(terms.params)) > 0)
@@ -105,7 +110,10 @@ def test_pairwise_gradient_matches_finite_differences(name):
         x = _points()
         params = jax.jit(kernel.evaluate)(x).params
         check_grads(
-            jax.jit(lambda u: kernel.pairwise(params, u, x[1])), (x[0],), order=1, eps=1e-6
+            jax.jit(lambda u: kernel.pairwise(params, u, x[1])),
+            (x[0],),
+            order=1,
+            eps=1e-6,
         )
 
 
@@ -124,12 +132,14 @@ _RANDOM_POINT_GRAMS = {
     st.sampled_from(["rbf", "von_mises", "sum"]),
 )
 def test_gram_is_positive_semidefinite_on_random_points(points, family):
+    """Gram matrices of random points have no negative eigenvalue."""
     with jax.enable_x64(True):
         gram = np.asarray(_RANDOM_POINT_GRAMS[family](jnp.asarray(points)))
     assert np.linalg.eigvalsh(gram).min() > -1e-9
 
 
 def test_von_mises_wraps_around():
+    """The von Mises kernel is 2π-periodic and sees -3.1 near 3.0."""
     with jax.enable_x64(True):
         kernel = von_mises(bandwidth=0.7)
         s = jnp.array([0.7])
@@ -143,6 +153,7 @@ def test_von_mises_wraps_around():
 
 
 def test_median_bandwidth_matches_definition_and_blackjax():
+    """median/√(log n) per group, equal to blackjax's √length_scale."""
     x = _points(seed=3, n=30)
     xn = np.asarray(x, dtype=np.float64)
     iu = np.triu_indices(30, 1)
@@ -158,9 +169,9 @@ def test_median_bandwidth_matches_definition_and_blackjax():
         rtol=1e-5,
     )
     # blackjax's length_scale (k = exp(-‖Δ‖²/ℓ)) is s².
-    ell = jax.jit(lambda p: blackjax_svgd.median_heuristic({"length_scale": 1.0}, p))(x)[
-        "length_scale"
-    ]
+    ell = jax.jit(lambda p: blackjax_svgd.median_heuristic({"length_scale": 1.0}, p))(
+        x
+    )["length_scale"]
     np.testing.assert_allclose(median_bandwidth(x)[0] ** 2, ell, rtol=1e-5)
     # Coincident particles have median distance 0: fall back to 1, not 0.
     np.testing.assert_array_equal(median_bandwidth(jnp.zeros((5, 2))), [1.0])
@@ -200,6 +211,7 @@ def test_feature_kernel_reads_density_features_like_its_own_feature_map():
     ],
 )
 def test_bad_construction_raises_value_error(make, match):
+    """Bad kernel arguments fail when the kernel is built."""
     with pytest.raises(ValueError, match=match):
         make()
 
@@ -207,8 +219,16 @@ def test_bad_construction_raises_value_error(make, match):
 @pytest.mark.parametrize(
     "kernel, x, match",
     [
-        (rbf(groups=[[0, 1], [2]]), jnp.zeros((4, 4)), r"coordinates \[3\] are in none"),
-        (rbf(groups=[[0, 1], [1, 2]]), jnp.zeros((4, 3)), r"\[1\] are in more than one"),
+        (
+            rbf(groups=[[0, 1], [2]]),
+            jnp.zeros((4, 4)),
+            r"coordinates \[3\] are in none",
+        ),
+        (
+            rbf(groups=[[0, 1], [1, 2]]),
+            jnp.zeros((4, 3)),
+            r"\[1\] are in more than one",
+        ),
         (rbf(groups=[[0, 5]]), jnp.zeros((4, 3)), r"valid range \[0, 3\)"),
         (
             sum_kernels([(1.0, rbf(), [0]), (1.0, rbf(), [2])]),
@@ -221,5 +241,6 @@ def test_bad_construction_raises_value_error(make, match):
     ],
 )
 def test_bad_evaluation_raises_value_error(kernel, x, match):
+    """Groups that do not fit the input fail on evaluation, before compiling."""
     with pytest.raises(ValueError, match=match):
         kernel.evaluate(x)

@@ -50,7 +50,9 @@ def test_one_step_equals_blackjax(n, d, seed, bandwidth):
     def blackjax_step(x):
         ell = length_scale
         if ell is None:
-            ell = blackjax_svgd.median_heuristic({"length_scale": 1.0}, x)["length_scale"]
+            ell = blackjax_svgd.median_heuristic({"length_scale": 1.0}, x)[
+                "length_scale"
+            ]
         state = blackjax_svgd.init(x, {"length_scale": ell}, optimizer)
         kernel_step = blackjax_svgd.build_kernel(optimizer)
         return kernel_step(state, jax.grad(logp), blackjax_svgd.rbf_kernel), ell
@@ -58,7 +60,9 @@ def test_one_step_equals_blackjax(n, d, seed, bandwidth):
     expected, length_scale = blackjax_step(x0)
     step = jax.jit(build_svgd_step(jax.vmap(logp), kernel, optimizer))
     state, info = step(init(x0, optimizer), KEY)
-    np.testing.assert_allclose(state.particles, expected.particles, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        state.particles, expected.particles, rtol=1e-5, atol=1e-5
+    )
     assert float(jnp.max(jnp.abs(state.particles - x0))) > 1e-3  # the step did move
     np.testing.assert_allclose(info.bandwidth, [length_scale**0.5], rtol=1e-5)
 
@@ -78,6 +82,7 @@ def _brute_force_direction(logp1, kernel, x, a):
 
 
 def test_dsvgd_direction_is_importance_weighted_eq4():
+    """Discrete SVGD matches eq. (4) computed pair by pair."""
     with jax.enable_x64(True):
         d, n = 4, 12
         logp1 = _random_target(d, 3)
@@ -92,7 +97,9 @@ def test_dsvgd_direction_is_importance_weighted_eq4():
         log_w = jax.vmap(logp1)(x) - jax.vmap(log_target1)(x)
         a = jnp.exp(log_w) / jnp.sum(jnp.exp(log_w))
         np.testing.assert_allclose(info.weights, a, rtol=1e-10)
-        expected = jax.jit(_brute_force_direction, static_argnums=(0, 1))(logp1, kernel, x, a)
+        expected = jax.jit(_brute_force_direction, static_argnums=(0, 1))(
+            logp1, kernel, x, a
+        )
         np.testing.assert_allclose(phi, expected, rtol=1e-9, atol=1e-12)
         # With p(Γ(x)) = ρ(x) every weight is 1/n: discrete SVGD is SVGD.
         phi_svgd, _ = jax.jit(lambda p: stein_direction(jax.vmap(logp1), kernel, p))(x)
@@ -105,6 +112,7 @@ def test_dsvgd_direction_is_importance_weighted_eq4():
 
 
 def test_importance_log_weights_are_stable_and_normalised():
+    """Weights of e^±10⁴ neither overflow nor underflow; bad ones get 0."""
     log_rho = jnp.array([1e4, 1e4 + 1.0, -1e4, 0.0, jnp.nan])
     log_p = jnp.array([0.0, 0.0, 0.0, jnp.inf, 0.0])
     log_w = importance_log_weights(log_rho, log_p)
@@ -112,20 +120,27 @@ def test_importance_log_weights_are_stable_and_normalised():
     np.testing.assert_allclose(w.sum(), 1.0, rtol=1e-6)
     np.testing.assert_allclose(w[:2], [1 / (1 + np.e), np.e / (1 + np.e)], rtol=1e-5)
     np.testing.assert_array_equal(w[2:], 0.0)  # underflow, -inf and NaN: weight 0
-    assert np.all(np.asarray(importance_log_weights(jnp.full(3, jnp.nan), jnp.zeros(3))) == -np.inf)
+    assert np.all(
+        np.asarray(importance_log_weights(jnp.full(3, jnp.nan), jnp.zeros(3)))
+        == -np.inf
+    )
 
 
 def test_sgd_step_is_gradient_ascent():
+    """With optax.sgd(ε) one SGD step is θ + ε ∇log ρ(θ)."""
     logp1 = _random_target(3, 5)
     x0 = jax.random.normal(jax.random.key(6), (5, 3))
     optimizer = optax.sgd(0.05)
-    state, info = jax.jit(build_sgd_step(jax.vmap(logp1), optimizer))(init(x0, optimizer), KEY)
+    state, info = jax.jit(build_sgd_step(jax.vmap(logp1), optimizer))(
+        init(x0, optimizer), KEY
+    )
     expected = x0 + 0.05 * jax.vmap(jax.grad(logp1))(x0)
     np.testing.assert_allclose(state.particles, expected, rtol=1e-6, atol=1e-6)
     assert info.bandwidth.shape == (0,)
 
 
 def test_any_optax_transformation_works_and_reports_its_learning_rate():
+    """Chains, clipping and schedules plug in; ε is read back."""
     logp1 = _random_target(2, 7)
     x0 = jax.random.normal(jax.random.key(8), (10, 2))
     schedule = optax.exponential_decay(0.1, transition_steps=1, decay_rate=0.5)
@@ -147,9 +162,13 @@ def test_any_optax_transformation_works_and_reports_its_learning_rate():
 
 def _billiards_like(x):
     """A batched 'rollout': returns log ρ and soft features of the same pass."""
-    traj = jnp.cumsum(jnp.tanh(x[:, None, :] * jnp.linspace(0.1, 1.0, 8)[None, :, None]), 1)
+    traj = jnp.cumsum(
+        jnp.tanh(x[:, None, :] * jnp.linspace(0.1, 1.0, 8)[None, :, None]), 1
+    )
     logp = -jnp.sum((traj[:, -1] - jnp.array([1.0, -0.5])) ** 2, axis=-1)
-    feats = jax.nn.sigmoid(jnp.stack([traj[:, :, 0].max(1), -traj[:, :, 1].min(1), x[:, 0] * x[:, 1]], 1))
+    feats = jax.nn.sigmoid(
+        jnp.stack([traj[:, :, 0].max(1), -traj[:, :, 1].min(1), x[:, 0] * x[:, 1]], 1)
+    )
     return logp, feats
 
 
@@ -158,7 +177,9 @@ def test_features_from_the_log_density_equal_a_separate_feature_map(jacobian):
     """App. B-C: kernel over [θ, w(θ)] with w from the same batched call as log ρ."""
     x0 = jax.random.normal(jax.random.key(9), (16, 2))
     optimizer = optax.sgd(0.1)
-    shared = build_svgd_step(_billiards_like, feature_kernel(), optimizer, jacobian=jacobian)
+    shared = build_svgd_step(
+        _billiards_like, feature_kernel(), optimizer, jacobian=jacobian
+    )
     separate = build_svgd_step(
         lambda p: _billiards_like(p)[0],
         feature_kernel(feature_fn=lambda p: _billiards_like(p)[1]),
@@ -195,55 +216,78 @@ def test_one_batched_log_density_call_per_step(kernel, fn, jacobian):
 
 
 def test_nonfinite_particles_get_zero_weight_and_do_not_poison_others():
+    """A NaN particle gets weight 0 and the others stay finite."""
+
     def logp(x):
         value = -jnp.sum(x**2, axis=1)
         return jnp.where(x[:, 0] > 2.5, jnp.nan, value)
 
     x0 = jnp.concatenate([jnp.array([[3.0, 0.0]]), jax.random.normal(KEY, (7, 2))])
     optimizer = optax.sgd(0.1)
-    state, info = jax.jit(build_svgd_step(logp, rbf(), optimizer))(init(x0, optimizer), KEY)
+    state, info = jax.jit(build_svgd_step(logp, rbf(), optimizer))(
+        init(x0, optimizer), KEY
+    )
     assert np.all(np.isfinite(state.particles))
     assert int(info.n_nonfinite) == 1 and float(info.weights[0]) == 0.0
-    np.testing.assert_allclose(float(info.logdensity_mean), float(jnp.mean(logp(x0)[1:])), rtol=1e-6)
+    np.testing.assert_allclose(
+        float(info.logdensity_mean), float(jnp.mean(logp(x0)[1:])), rtol=1e-6
+    )
 
 
 @pytest.mark.parametrize(
     "call, match",
     [
-        (lambda: init(jnp.zeros(5), optax.sgd(0.1)), r"shape \(n, d\); got shape \(5,\)"),
         (
-            lambda: jax.jit(build_svgd_step(lambda p: -jnp.sum(p**2, 1), rbf(), optax.sgd(0.1)))(
-                init(jnp.zeros((1, 2)), optax.sgd(0.1)), KEY
-            ),
+            lambda: init(jnp.zeros(5), optax.sgd(0.1)),
+            r"shape \(n, d\); got shape \(5,\)",
+        ),
+        (
+            lambda: jax.jit(
+                build_svgd_step(lambda p: -jnp.sum(p**2, 1), rbf(), optax.sgd(0.1))
+            )(init(jnp.zeros((1, 2)), optax.sgd(0.1)), KEY),
             r"at least 2 particles \(n >= 2\); got n=1",
         ),
         (
-            lambda: jax.jit(build_svgd_step(lambda p: -jnp.sum(p**2), rbf(), optax.sgd(0.1)))(
-                init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY
-            ),
+            lambda: jax.jit(
+                build_svgd_step(lambda p: -jnp.sum(p**2), rbf(), optax.sgd(0.1))
+            )(init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY),
             r"log-densities of shape \(n,\) = \(4,\)",
         ),
         (
             lambda: jax.jit(
-                build_svgd_step(lambda p: -jnp.sum(p**2, 1), feature_kernel(), optax.sgd(0.1))
+                build_svgd_step(
+                    lambda p: -jnp.sum(p**2, 1), feature_kernel(), optax.sgd(0.1)
+                )
             )(init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY),
             r"must return \(logp \(n,\), features \(n, f\)\)",
         ),
         (
             lambda: jax.jit(
-                build_svgd_step(lambda p: -jnp.sum(p**2, 1), rbf(groups=[[0]]), optax.sgd(0.1))
+                build_svgd_step(
+                    lambda p: -jnp.sum(p**2, 1), rbf(groups=[[0]]), optax.sgd(0.1)
+                )
             )(init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY),
             r"RBF groups must cover every coordinate .* \[1\] are in none",
         ),
-        (lambda: build_svgd_step(lambda p: p, rbf(), "adam"), r"optax.GradientTransformation"),
-        (lambda: build_svgd_step(lambda p: p, "rbf", optax.sgd(0.1)), r"Kernel or None"),
+        (
+            lambda: build_svgd_step(lambda p: p, rbf(), "adam"),
+            r"optax.GradientTransformation",
+        ),
+        (
+            lambda: build_svgd_step(lambda p: p, "rbf", optax.sgd(0.1)),
+            r"Kernel or None",
+        ),
         (
             lambda: build_svgd_step(lambda p: p, rbf(), optax.sgd(0.1), jacobian="x"),
             r"jacobian must be one of",
         ),
-        (lambda: build_dsvgd_step(lambda p: p, None, rbf(), optax.sgd(0.1)), r"log_target_fn"),
+        (
+            lambda: build_dsvgd_step(lambda p: p, None, rbf(), optax.sgd(0.1)),
+            r"log_target_fn",
+        ),
     ],
 )
 def test_bad_input_raises_clear_value_error(call, match):
+    """Bad arguments raise a ValueError naming them, before compiling."""
     with pytest.raises(ValueError, match=match):
         call()

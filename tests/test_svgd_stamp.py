@@ -25,6 +25,7 @@ def two_modes(x):
 
 
 def uniform_init(key):
+    """Sixty particles uniform on [-4, 4]²."""
     return jax.random.uniform(key, (60, 2), minval=-4.0, maxval=4.0)
 
 
@@ -33,10 +34,12 @@ CONFIG = StampConfig(svgd_learning_rate=0.05, sgd_learning_rate=0.05, seed=3)
 
 @pytest.fixture(scope="module")
 def result():
+    """One full STAMP run on the two-mode target, shared by several tests."""
     return run_stamp(two_modes, uniform_init, rbf(), CONFIG, progress=False)
 
 
 def test_svgd_covers_both_modes_then_sgd_reaches_the_optima(result):
+    """SVGD keeps both modes; SGD then lands on the optima."""
     assert result.svgd_converged and result.sgd_converged
     assert 0 < result.svgd_iters < CONFIG.svgd_max_iters
     assert 0 < result.sgd_iters < CONFIG.sgd_max_iters
@@ -53,6 +56,7 @@ def test_svgd_covers_both_modes_then_sgd_reaches_the_optima(result):
 
 
 def test_diagnostics_record_every_iteration_and_phase(result):
+    """One diagnostics row per iteration, with its phase."""
     diag = result.diagnostics
     t_svgd, total = result.svgd_iters, result.svgd_iters + result.sgd_iters
     for field in diag:
@@ -60,7 +64,9 @@ def test_diagnostics_record_every_iteration_and_phase(result):
     assert np.all(diag.phase[:t_svgd] == PHASE_SVGD)
     assert np.all(diag.phase[t_svgd:] == PHASE_SGD)
     assert diag.bandwidth.shape == (total, 1)
-    assert np.all(diag.bandwidth[:t_svgd] > 0) and np.all(np.isnan(diag.bandwidth[t_svgd:]))
+    assert np.all(diag.bandwidth[:t_svgd] > 0) and np.all(
+        np.isnan(diag.bandwidth[t_svgd:])
+    )
     np.testing.assert_allclose(diag.learning_rate, 0.05, rtol=1e-6)
     assert np.all(diag.logdensity_max >= diag.logdensity_mean)
     assert diag.logdensity_mean[-1] > diag.logdensity_mean[0] + 5
@@ -77,6 +83,7 @@ def test_diagnostics_record_every_iteration_and_phase(result):
 
 
 def test_one_trace_per_phase_and_same_seed_same_run():
+    """Each phase is traced once; a seed reproduces a run exactly."""
     traces = []
 
     def counted(x):
@@ -88,12 +95,21 @@ def test_one_trace_per_phase_and_same_seed_same_run():
     assert traces == [(60, 2), (60, 2)]  # SVGD step and SGD step, each traced once
     b = run_stamp(counted, uniform_init, None, config, progress=False)
     np.testing.assert_array_equal(a.particles, b.particles)
-    np.testing.assert_array_equal(a.diagnostics.logdensity_mean, b.diagnostics.logdensity_mean)
-    c = run_stamp(two_modes, uniform_init, None, StampConfig(svgd_max_iters=40, sgd_max_iters=30, seed=6), progress=False)
+    np.testing.assert_array_equal(
+        a.diagnostics.logdensity_mean, b.diagnostics.logdensity_mean
+    )
+    c = run_stamp(
+        two_modes,
+        uniform_init,
+        None,
+        StampConfig(svgd_max_iters=40, sgd_max_iters=30, seed=6),
+        progress=False,
+    )
     assert not np.array_equal(a.particles, c.particles)
 
 
 def test_iteration_cap_is_the_fallback():
+    """Unreachable tolerances stop each phase at its cap."""
     config = StampConfig(svgd_max_iters=15, sgd_max_iters=10, rtol=0.0, motion_tol=0.0)
     res = run_stamp(two_modes, uniform_init, None, config, progress=False)
     assert (res.svgd_iters, res.sgd_iters) == (15, 10)
@@ -101,6 +117,8 @@ def test_iteration_cap_is_the_fallback():
 
 
 def test_discrete_svgd_and_density_features_plug_in():
+    """log_target_fn and density features run through run_stamp."""
+
     def with_features(x):
         return two_modes(x), jax.nn.sigmoid(4 * x[:, :1])  # "which side" feature
 
@@ -110,17 +128,28 @@ def test_discrete_svgd_and_density_features_plug_in():
         uniform_init,
         feature_kernel(),
         config,
-        log_target_fn=lambda x: two_modes(jnp.round(x * 4) / 4),  # a coarse "hard" target
+        log_target_fn=lambda x: two_modes(
+            jnp.round(x * 4) / 4
+        ),  # a coarse "hard" target
         svgd_optimizer=optax.sgd(0.05),
         progress=False,
     )
     assert res.diagnostics.bandwidth.shape == (25, 2)  # [θ] and [w(θ)] blocks
     assert np.all(np.isfinite(res.particles))
-    assert np.all(np.isnan(res.diagnostics.learning_rate[:20]))  # optax.sgd: not exposed
+    assert np.all(
+        np.isnan(res.diagnostics.learning_rate[:20])
+    )  # optax.sgd: not exposed
 
 
 def test_progress_bar_in_interactive_use(capsys):
-    run_stamp(two_modes, uniform_init, None, StampConfig(svgd_max_iters=3, sgd_max_iters=2), progress=True)
+    """progress=True draws a tqdm bar on stderr."""
+    run_stamp(
+        two_modes,
+        uniform_init,
+        None,
+        StampConfig(svgd_max_iters=3, sgd_max_iters=2),
+        progress=True,
+    )
     assert "STAMP" in capsys.readouterr().err
 
 
@@ -136,34 +165,60 @@ def test_progress_bar_in_interactive_use(capsys):
     ],
 )
 def test_has_converged(means, moves, expected):
-    got = has_converged(means, moves, window=25, rtol=1e-3, motion_tol=1e-3, min_iters=10)
+    """The convergence test on hand-made histories."""
+    got = has_converged(
+        means, moves, window=25, rtol=1e-3, motion_tol=1e-3, min_iters=10
+    )
     assert got is expected
 
 
 @pytest.mark.parametrize(
     "make, match",
     [
-        (lambda: StampConfig(svgd_learning_rate=0.0), r"svgd_learning_rate \(step size\) must be"),
-        (lambda: StampConfig(sgd_learning_rate=-1e-3), r"sgd_learning_rate \(step size\) must be"),
+        (
+            lambda: StampConfig(svgd_learning_rate=0.0),
+            r"svgd_learning_rate \(step size\) must be",
+        ),
+        (
+            lambda: StampConfig(sgd_learning_rate=-1e-3),
+            r"sgd_learning_rate \(step size\) must be",
+        ),
         (lambda: StampConfig(window=0), r"window must be an integer >= 1"),
-        (lambda: StampConfig(svgd_max_iters=-1), r"svgd_max_iters must be an integer >= 0"),
+        (
+            lambda: StampConfig(svgd_max_iters=-1),
+            r"svgd_max_iters must be an integer >= 0",
+        ),
         (lambda: StampConfig(rtol=-1.0), r"rtol must be a float >= 0"),
         (lambda: StampConfig(jacobian="central"), r"jacobian must be one of"),
-        (lambda: run_stamp(two_modes, jnp.zeros((5,)), progress=False), r"shape \(n, d\)"),
-        (lambda: run_stamp(two_modes, jnp.zeros((1, 2)), progress=False), r"n >= 2\); got n=1"),
-        (lambda: run_stamp(two_modes, jnp.zeros((4, 2)), config={}, progress=False), r"StampConfig"),
+        (
+            lambda: run_stamp(two_modes, jnp.zeros((5,)), progress=False),
+            r"shape \(n, d\)",
+        ),
+        (
+            lambda: run_stamp(two_modes, jnp.zeros((1, 2)), progress=False),
+            r"n >= 2\); got n=1",
+        ),
+        (
+            lambda: run_stamp(two_modes, jnp.zeros((4, 2)), config={}, progress=False),
+            r"StampConfig",
+        ),
         (
             lambda: run_stamp(
-                lambda x: jnp.full(x.shape[0], jnp.nan), jnp.ones((4, 2)), progress=False
+                lambda x: jnp.full(x.shape[0], jnp.nan),
+                jnp.ones((4, 2)),
+                progress=False,
             ),
             r"NaN/inf .* for all 4 initial particles",
         ),
         (
-            lambda: run_stamp(two_modes, jnp.ones((4, 2)), rbf(groups=[[0]]), progress=False),
+            lambda: run_stamp(
+                two_modes, jnp.ones((4, 2)), rbf(groups=[[0]]), progress=False
+            ),
             r"RBF groups must cover every coordinate 0..1",
         ),
     ],
 )
 def test_bad_input_raises_clear_value_error(make, match):
+    """Bad arguments raise a ValueError naming them and their range."""
     with pytest.raises(ValueError, match=match):
         make()

@@ -10,10 +10,10 @@ References:
 """
 
 from mjstamp.svgd.kernels import (
+    RBF,
     FeatureKernel,
     Kernel,
     KernelTerms,
-    RBF,
     SumKernel,
     VonMises,
     feature_kernel,

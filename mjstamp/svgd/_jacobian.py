@@ -52,7 +52,9 @@ def value_and_batched_jacobian(
         out, pullback = jax.vjp(fn, x)
         m = out.shape[-1]
         # Cotangent k selects output k of every particle at once.
-        cotangents = jnp.broadcast_to(jnp.eye(m, dtype=out.dtype)[:, None, :], (m, n, m))
+        cotangents = jnp.broadcast_to(
+            jnp.eye(m, dtype=out.dtype)[:, None, :], (m, n, m)
+        )
         (jac_t,) = jax.vmap(pullback)(cotangents)  # (m, n, d)
         return out, jnp.swapaxes(jac_t, 0, 1)
     out, push = jax.linearize(fn, x)

@@ -89,7 +89,9 @@ def flat_bandwidths(params: Any) -> jax.Array:
 def _check_spec(spec: Any, what: str) -> None:
     if isinstance(spec, slice):
         return
-    if isinstance(spec, (str, bytes)) or not isinstance(spec, (Sequence, range, np.ndarray)):
+    if isinstance(spec, (str, bytes)) or not isinstance(
+        spec, (Sequence, range, np.ndarray)
+    ):
         raise ValueError(f"{what} must be a slice or a sequence of ints; got {spec!r}")
     if not all(isinstance(i, (int, np.integer)) for i in spec):
         raise ValueError(f"{what} must be a slice or a sequence of ints; got {spec!r}")
@@ -139,7 +141,9 @@ def _check_cover(index_sets: Sequence[np.ndarray], dim: int, what: str, *, once:
             )
 
 
-def _check_bandwidth(bandwidth: Any, n_groups: int | None) -> tuple[Bandwidth, ...] | Bandwidth:
+def _check_bandwidth(
+    bandwidth: Any, n_groups: int | None
+) -> tuple[Bandwidth, ...] | Bandwidth:
     def one(b):
         if isinstance(b, str):
             if b != "median":
@@ -178,7 +182,7 @@ def _sqdist(z: jax.Array) -> jax.Array:
 
 
 def _median_bandwidth_from_sqdist(d2: jax.Array) -> jax.Array:
-    """Median heuristic s = median_{i<j} dist_ij / sqrt(log n) from squared distances."""
+    """Median heuristic s = median_{i<j} dist_ij / √(log n) from squared distances."""
     n = d2.shape[0]
     iu = np.triu_indices(n, k=1)
     med = jnp.median(jnp.sqrt(d2[iu]))
@@ -233,10 +237,13 @@ def _uniform_weights(n: int, dtype) -> jax.Array:
 
 def _check_x(x: jax.Array, what: str = "x") -> None:
     if x.ndim != 2:
-        raise ValueError(f"{what} must be a 2-D array of shape (n, D); got shape {x.shape}")
+        raise ValueError(
+            f"{what} must be a 2-D array of shape (n, D); got shape {x.shape}"
+        )
     if x.shape[0] < 2:
         raise ValueError(
-            f"{what}: a kernel over particles needs n >= 2 particles; got n={x.shape[0]}"
+            f"{what}: a kernel over particles needs n >= 2 particles; "
+            f"got n={x.shape[0]}"
         )
 
 
@@ -301,9 +308,12 @@ class _Stationary(Kernel):
     bandwidth: tuple[Bandwidth, ...] | Bandwidth = "median"
 
     def __post_init__(self):
+        """Validates groups and bandwidths (ValueError naming the bad value)."""
         name = type(self).__name__
         if self.groups is not None:
-            if isinstance(self.groups, (slice, str)) or not isinstance(self.groups, Sequence):
+            if isinstance(self.groups, (slice, str)) or not isinstance(
+                self.groups, Sequence
+            ):
                 raise ValueError(
                     f"{name} groups must be None or a sequence of slices / index "
                     f"sequences; got {self.groups!r}"
@@ -314,7 +324,9 @@ class _Stationary(Kernel):
                 _check_spec(g, f"{name} group")
             object.__setattr__(self, "groups", tuple(self.groups))
         n_groups = 1 if self.groups is None else len(self.groups)
-        object.__setattr__(self, "bandwidth", _check_bandwidth(self.bandwidth, n_groups))
+        object.__setattr__(
+            self, "bandwidth", _check_bandwidth(self.bandwidth, n_groups)
+        )
 
     # Subclass hooks ---------------------------------------------------------
     def _embed(self, x: jax.Array) -> tuple[jax.Array, int]:
@@ -350,6 +362,7 @@ class _Stationary(Kernel):
         return (1.0 / s**2)[group_of]
 
     def evaluate(self, x, weights=None, *, jac=None, features=None) -> KernelTerms:
+        """See `Kernel.evaluate`."""
         if features is not None:
             raise ValueError(
                 "features from the log density are read by feature_kernel(...) only; "
@@ -372,17 +385,24 @@ class _Stationary(Kernel):
             s_list, log_k = [], 0.0
             for b, col in zip(specs, cols, strict=True):
                 d2 = _sqdist(_take(z, col))
-                s_g = _median_bandwidth_from_sqdist(d2) if b == "median" else jnp.asarray(b)
+                s_g = (
+                    _median_bandwidth_from_sqdist(d2)
+                    if b == "median"
+                    else jnp.asarray(b)
+                )
                 s_list.append(s_g.astype(x.dtype))
                 log_k = log_k - d2 / s_g**2
             s = jnp.stack(s_list)
             lam = self._lam(s, groups, dim)
         gram = jnp.exp(log_k)
         a = _uniform_weights(n, x.dtype) if weights is None else weights
-        repulsion = _separable_repulsion(a[:, None] * gram, self._grad_terms(x, lam), jac)
+        repulsion = _separable_repulsion(
+            a[:, None] * gram, self._grad_terms(x, lam), jac
+        )
         return KernelTerms(gram, repulsion, s)
 
     def pairwise(self, params, x, y):
+        """See `Kernel.pairwise`; params is the (g,) array of bandwidths."""
         dim = x.shape[-1]
         lam = self._lam(jnp.asarray(params), self._group_indices(dim), dim)
         return jnp.exp(self._log_pair(lam, x, y))
@@ -435,7 +455,10 @@ class VonMises(_Stationary):
 
     def _grad_terms(self, x, lam):
         # ∇_{x_j} k_ji = −2λ sin(x_j − x_i) k_ji, sin(a−b) = sin a cos b − cos a sin b.
-        return [(-2.0 * lam * jnp.sin(x), jnp.cos(x)), (2.0 * lam * jnp.cos(x), jnp.sin(x))]
+        return [
+            (-2.0 * lam * jnp.sin(x), jnp.cos(x)),
+            (2.0 * lam * jnp.cos(x), jnp.sin(x)),
+        ]
 
     def _log_pair(self, lam, x, y):
         return jnp.sum(2.0 * lam * (jnp.cos(x - y) - 1.0))
@@ -460,20 +483,28 @@ class SumKernel(Kernel):
     terms: tuple[tuple[float, Kernel, IndexSpec], ...] = ()
 
     def __post_init__(self):
+        """Validates the terms (ValueError naming the bad term)."""
         if len(self.terms) == 0:
-            raise ValueError("sum_kernels needs at least one (weight, kernel, index) term")
+            raise ValueError(
+                "sum_kernels needs at least one (weight, kernel, index) term"
+            )
         clean = []
         for t, term in enumerate(self.terms):
             try:
                 weight, kernel, spec = term
             except (TypeError, ValueError):
                 raise ValueError(
-                    f"sum_kernels term {t} must be (weight, kernel, index); got {term!r}"
+                    f"sum_kernels term {t} must be (weight, kernel, index); "
+                    f"got {term!r}"
                 ) from None
             if not (float(weight) > 0 and math.isfinite(float(weight))):
-                raise ValueError(f"sum_kernels term {t} weight must be > 0; got {weight!r}")
+                raise ValueError(
+                    f"sum_kernels term {t} weight must be > 0; got {weight!r}"
+                )
             if not isinstance(kernel, Kernel):
-                raise ValueError(f"sum_kernels term {t} kernel must be a Kernel; got {kernel!r}")
+                raise ValueError(
+                    f"sum_kernels term {t} kernel must be a Kernel; got {kernel!r}"
+                )
             if kernel.uses_density_features:
                 raise ValueError(
                     f"sum_kernels term {t}: a feature_kernel without feature_fn reads "
@@ -484,11 +515,15 @@ class SumKernel(Kernel):
         object.__setattr__(self, "terms", tuple(clean))
 
     def _indices(self, dim: int) -> list[np.ndarray]:
-        idx = [_resolve(s, dim, f"sum_kernels term {t} index") for t, (_, _, s) in enumerate(self.terms)]
+        idx = [
+            _resolve(s, dim, f"sum_kernels term {t} index")
+            for t, (_, _, s) in enumerate(self.terms)
+        ]
         _check_cover(idx, dim, "sum_kernels terms", once=False)
         return idx
 
     def evaluate(self, x, weights=None, *, jac=None, features=None) -> KernelTerms:
+        """See `Kernel.evaluate`."""
         if features is not None:
             raise ValueError(
                 "features from the log density are read by an outermost "
@@ -511,8 +546,11 @@ class SumKernel(Kernel):
         return KernelTerms(gram, repulsion, tuple(params))
 
     def pairwise(self, params, x, y):
+        """See `Kernel.pairwise`; params holds one entry per term."""
         total = 0.0
-        for (w, kernel, _), idx, p in zip(self.terms, self._indices(x.shape[-1]), params, strict=True):
+        for (w, kernel, _), idx, p in zip(
+            self.terms, self._indices(x.shape[-1]), params, strict=True
+        ):
             total = total + w * kernel.pairwise(p, x[idx], y[idx])
         return total
 
@@ -546,14 +584,20 @@ class FeatureKernel(Kernel):
     jacobian: JacobianMode = "auto"
 
     def __post_init__(self):
+        """Validates base, feature_fn and jacobian."""
         if self.base is not None and not isinstance(self.base, Kernel):
-            raise ValueError(f"feature_kernel base must be a Kernel or None; got {self.base!r}")
+            raise ValueError(
+                f"feature_kernel base must be a Kernel or None; got {self.base!r}"
+            )
         if self.feature_fn is not None and not callable(self.feature_fn):
-            raise ValueError(f"feature_fn must be callable or None; got {self.feature_fn!r}")
+            raise ValueError(
+                f"feature_fn must be callable or None; got {self.feature_fn!r}"
+            )
         check_mode(self.jacobian, "feature_kernel jacobian")
 
     @property
     def uses_density_features(self) -> bool:  # type: ignore[override]
+        """True when feature_fn is None: the log density supplies the features."""
         return self.feature_fn is None
 
     def _base(self, d: int, f: int) -> Kernel:
@@ -567,8 +611,12 @@ class FeatureKernel(Kernel):
         n, d = x.shape
         if self.feature_fn is not None:
             if features is not None:
-                raise ValueError("feature_kernel has its own feature_fn; got density features too")
-            feats, feats_jac = value_and_batched_jacobian(self.feature_fn, x, self.jacobian)
+                raise ValueError(
+                    "feature_kernel has its own feature_fn; got density features too"
+                )
+            feats, feats_jac = value_and_batched_jacobian(
+                self.feature_fn, x, self.jacobian
+            )
         elif features is None:
             raise ValueError(
                 "feature_kernel(feature_fn=None) reads its features from the log "
@@ -577,7 +625,11 @@ class FeatureKernel(Kernel):
             )
         else:
             feats, feats_jac = features
-        if feats.ndim != 2 or feats.shape[0] != n or feats_jac.shape != (*feats.shape, d):
+        if (
+            feats.ndim != 2
+            or feats.shape[0] != n
+            or feats_jac.shape != (*feats.shape, d)
+        ):
             raise ValueError(
                 f"features must have shape (n, f) = ({n}, f) with Jacobians (n, f, d); "
                 f"got {feats.shape} and {feats_jac.shape}"
@@ -589,6 +641,7 @@ class FeatureKernel(Kernel):
         return psi, jnp.concatenate([eye, feats_jac.astype(x.dtype)], axis=1)
 
     def evaluate(self, x, weights=None, *, jac=None, features=None) -> KernelTerms:
+        """See `Kernel.evaluate`; the repulsion is returned in θ-space, (n, d)."""
         _check_x(x)
         psi, psi_jac = self._embed(x, features)
         if jac is not None:
@@ -607,6 +660,7 @@ class FeatureKernel(Kernel):
         return jnp.concatenate([x, feats]) if self.include_inputs else feats
 
     def pairwise(self, params, x, y):
+        """See `Kernel.pairwise`; needs feature_fn."""
         ex, ey = self.embed(x), self.embed(y)
         f = ex.shape[0] - x.shape[0] * self.include_inputs
         return self._base(x.shape[0], f).pairwise(params, ex, ey)
@@ -634,7 +688,9 @@ def rbf(groups: Sequence[IndexSpec] | None = None, bandwidth: Any = "median") ->
     return RBF(groups=None if groups is None else tuple(groups), bandwidth=bandwidth)
 
 
-def von_mises(groups: Sequence[IndexSpec] | None = None, bandwidth: Any = "median") -> VonMises:
+def von_mises(
+    groups: Sequence[IndexSpec] | None = None, bandwidth: Any = "median"
+) -> VonMises:
     """Von Mises kernel for angles (wrap-around), one bandwidth per group.
 
     Args:
@@ -647,7 +703,9 @@ def von_mises(groups: Sequence[IndexSpec] | None = None, bandwidth: Any = "media
     References:
       STAMP App. C-B.
     """
-    return VonMises(groups=None if groups is None else tuple(groups), bandwidth=bandwidth)
+    return VonMises(
+        groups=None if groups is None else tuple(groups), bandwidth=bandwidth
+    )
 
 
 def sum_kernels(terms: Sequence[tuple[float, Kernel, IndexSpec]]) -> SumKernel:
@@ -691,12 +749,17 @@ def feature_kernel(
       STAMP App. B-C.
     """
     return FeatureKernel(
-        base=base, feature_fn=feature_fn, include_inputs=include_inputs, jacobian=jacobian
+        base=base,
+        feature_fn=feature_fn,
+        include_inputs=include_inputs,
+        jacobian=jacobian,
     )
 
 
-def median_bandwidth(x: jax.Array, groups: Sequence[IndexSpec] | None = None) -> jax.Array:
-    """Median-heuristic RBF bandwidths s_g = median_{i<j} ‖x_{i,g} − x_{j,g}‖ / √(log n).
+def median_bandwidth(
+    x: jax.Array, groups: Sequence[IndexSpec] | None = None
+) -> jax.Array:
+    """Median-heuristic RBF bandwidths, s_g = median_{i<j} ‖x_ig − x_jg‖ / √(log n).
 
     Args:
       x: (n, D) particles, n >= 2.
@@ -710,7 +773,9 @@ def median_bandwidth(x: jax.Array, groups: Sequence[IndexSpec] | None = None) ->
     """
     x = jnp.asarray(x)
     _check_x(x)
-    groups = tuple(tuple(idx.tolist()) for idx in rbf(groups)._group_indices(x.shape[1]))
+    groups = tuple(
+        tuple(idx.tolist()) for idx in rbf(groups)._group_indices(x.shape[1])
+    )
     return _median_bandwidths(x, groups)
 
 
@@ -718,5 +783,8 @@ def median_bandwidth(x: jax.Array, groups: Sequence[IndexSpec] | None = None) ->
 def _median_bandwidths(x: jax.Array, groups: tuple[tuple[int, ...], ...]) -> jax.Array:
     x = x - jnp.mean(x, axis=0)
     return jnp.stack(
-        [_median_bandwidth_from_sqdist(_sqdist(_take(x, np.asarray(g)))) for g in groups]
+        [
+            _median_bandwidth_from_sqdist(_sqdist(_take(x, np.asarray(g))))
+            for g in groups
+        ]
     )

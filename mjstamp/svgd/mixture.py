@@ -23,7 +23,7 @@ import optax
 
 from mjstamp.relax import hard_onehot, soft_onehot, uniform_base_sample
 from mjstamp.svgd.kernels import Kernel, feature_kernel, rbf
-from mjstamp.svgd.steps import SVGDState, StepInfo, build_dsvgd_step, init
+from mjstamp.svgd.steps import StepInfo, SVGDState, build_dsvgd_step, init
 
 __all__ = [
     "LabelledMixture",
@@ -52,6 +52,7 @@ class LabelledMixture(NamedTuple):
 
     @property
     def num_classes(self) -> int:
+        """m, the number of classes."""
         return self.weights.shape[0]
 
 
@@ -65,23 +66,25 @@ def figure1_mixture() -> LabelledMixture:
 
 
 def component_log_densities(mixture: LabelledMixture, x: jax.Array) -> jax.Array:
-    """ℓ_c(x) = log π_c + log N(x; μ_c, diag σ_c²), shape (n, m) for x of shape (n, 2)."""
+    """ℓ_c(x) = log π_c + log N(x; μ_c, diag σ_c²): (n, m) for x of shape (n, 2)."""
     z = (x[:, None, :] - mixture.means[None]) / mixture.stds[None]
     log_norm = jnp.sum(jnp.log(mixture.stds), axis=-1) + jnp.log(2 * jnp.pi)
-    return jnp.log(mixture.weights)[None] - 0.5 * jnp.sum(z**2, axis=-1) - log_norm[None]
+    return (
+        jnp.log(mixture.weights)[None] - 0.5 * jnp.sum(z**2, axis=-1) - log_norm[None]
+    )
 
 
 def log_surrogate(
     mixture: LabelledMixture, theta: jax.Array, temperature: float = 1.0
 ) -> jax.Array:
-    """log ρ(θ) = Σ_c Γ̃(a)_c ℓ_c(x) for θ = [x, a] of shape (n, 2 + m); returns (n,)."""
+    """Log ρ(θ) = Σ_c Γ̃(a)_c ℓ_c(x) for θ = [x, a] of shape (n, 2 + m); returns (n,)."""
     x, a = theta[:, :2], theta[:, 2:]
     soft = soft_onehot(a, mixture.num_classes, temperature)
     return jnp.sum(soft * component_log_densities(mixture, x), axis=-1)
 
 
 def log_target(mixture: LabelledMixture, theta: jax.Array) -> jax.Array:
-    """log p(Γ(a), x) = ℓ_{argmax a}(x), the target at the hard decode; (n,)."""
+    """Log p(Γ(a), x) = ℓ_{argmax a}(x), the target at the hard decode; (n,)."""
     x, a = theta[:, :2], theta[:, 2:]
     hard = hard_onehot(a, mixture.num_classes)
     return jnp.sum(hard * component_log_densities(mixture, x), axis=-1)

@@ -53,8 +53,10 @@ Schedule = Callable[[jax.Array], jax.Array]
 def _positive(value, name: str, *, allow_schedule: bool = False) -> None:
     if allow_schedule and callable(value):
         return
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-        value > 0 and math.isfinite(value)
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not (value > 0 and math.isfinite(value))
     ):
         what = "a float > 0 or an optax schedule" if allow_schedule else "> 0"
         raise ValueError(f"{name} must be {what}; got {value!r}")
@@ -100,15 +102,26 @@ class StampConfig:
     jacobian: JacobianMode = "auto"
 
     def __post_init__(self):
-        _positive(self.svgd_learning_rate, "svgd_learning_rate (step size)", allow_schedule=True)
-        _positive(self.sgd_learning_rate, "sgd_learning_rate (step size)", allow_schedule=True)
+        """Validates every field (ValueError naming the field and its range)."""
+        _positive(
+            self.svgd_learning_rate,
+            "svgd_learning_rate (step size)",
+            allow_schedule=True,
+        )
+        _positive(
+            self.sgd_learning_rate, "sgd_learning_rate (step size)", allow_schedule=True
+        )
         _count(self.svgd_max_iters, "svgd_max_iters", 0)
         _count(self.sgd_max_iters, "sgd_max_iters", 0)
         _count(self.min_iters, "min_iters", 0)
         _count(self.window, "window", 1)
         for name in ("rtol", "motion_tol"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not value >= 0
+            ):
                 raise ValueError(f"{name} must be a float >= 0; got {value!r}")
         _count(self.seed, "seed", 0)
         check_mode(self.jacobian, "jacobian")
@@ -174,7 +187,7 @@ def has_converged(
     displacement per iteration, the phase has converged when t >= min_iters,
     t > W and both
 
-      |L̄_t − L̄_{t−W}| ≤ rtol · max(|L̄_{t−W}|, 1)   and   (1/W) Σ_{s>t−W} m_s ≤ motion_tol.
+      |L̄_t − L̄_{t−W}| ≤ rtol · max(|L̄_{t−W}|, 1)  and  (1/W) Σ_{s>t−W} m_s ≤ motion_tol.
 
     The max(·, 1) compares a mean log posterior near 0 in absolute terms.
     Non-finite values never count as converged.
@@ -264,7 +277,11 @@ def run_stamp(
         )
     else:
         svgd_step = build_dsvgd_step(
-            logdensity_fn, log_target_fn, kernel, svgd_optimizer, jacobian=config.jacobian
+            logdensity_fn,
+            log_target_fn,
+            kernel,
+            svgd_optimizer,
+            jacobian=config.jacobian,
         )
     sgd_step = build_sgd_step(logdensity_fn, sgd_optimizer)
 
@@ -327,13 +344,19 @@ def run_stamp(
 
     try:
         state = run_phase(
-            PHASE_SVGD, svgd_step, init(particles, svgd_optimizer), config.svgd_max_iters
+            PHASE_SVGD,
+            svgd_step,
+            init(particles, svgd_optimizer),
+            config.svgd_max_iters,
         )
         svgd_particles = state.particles
         bar.total = iters[PHASE_SVGD] + config.sgd_max_iters
         bar.refresh()
         state = run_phase(
-            PHASE_SGD, sgd_step, init(svgd_particles, sgd_optimizer), config.sgd_max_iters
+            PHASE_SGD,
+            sgd_step,
+            init(svgd_particles, sgd_optimizer),
+            config.sgd_max_iters,
         )
     finally:
         bar.close()

@@ -93,7 +93,7 @@ class StepInfo(NamedTuple):
 
 
 def check_particles(particles: Any, *, min_particles: int = 2) -> None:
-    """Raises ValueError unless particles is a floating (n, d) array, n >= min_particles."""
+    """Raises ValueError unless particles is a float (n, d) array with enough rows."""
     shape = getattr(particles, "shape", None)
     if shape is None or len(shape) != 2:
         raise ValueError(
@@ -108,7 +108,9 @@ def check_particles(particles: Any, *, min_particles: int = 2) -> None:
     if d < 1:
         raise ValueError(f"particles must have d >= 1 coordinates; got shape {shape}")
     if not jnp.issubdtype(particles.dtype, jnp.floating):
-        raise ValueError(f"particles must be a floating array; got dtype {particles.dtype}")
+        raise ValueError(
+            f"particles must be a floating array; got dtype {particles.dtype}"
+        )
 
 
 def init(particles: jax.Array, optimizer: optax.GradientTransformation) -> SVGDState:
@@ -141,7 +143,8 @@ def _split_output(out: Any, n: int) -> tuple[jax.Array, jax.Array | None]:
         logp, feats = out
         if feats.ndim != 2 or feats.shape[0] != n:
             raise ValueError(
-                f"logdensity_fn features must have shape (n, f) with n={n}; got {feats.shape}"
+                f"logdensity_fn features must have shape (n, f) with n={n}; "
+                f"got {feats.shape}"
             )
     else:
         logp, feats = out, None
@@ -154,7 +157,7 @@ def _split_output(out: Any, n: int) -> tuple[jax.Array, jax.Array | None]:
 
 
 def _logp_and_score(logdensity_fn: LogDensityFn, x: jax.Array):
-    """log ρ (n,) and its n gradients (n, d) from one batched call and one pullback."""
+    """Log ρ (n,) and its n gradients (n, d) from one batched call and one pullback."""
     n = x.shape[0]
     logp, pullback = jax.vjp(lambda p: _split_output(logdensity_fn(p), n)[0], x)
     (score,) = pullback(jnp.ones_like(logp))
@@ -162,7 +165,7 @@ def _logp_and_score(logdensity_fn: LogDensityFn, x: jax.Array):
 
 
 def _logp_score_features(logdensity_fn: LogDensityFn, x: jax.Array, mode: JacobianMode):
-    """log ρ, scores, features and their Jacobians from one batched call."""
+    """Log ρ, scores, features and their Jacobians from one batched call."""
     n = x.shape[0]
 
     def stacked(p):
@@ -170,7 +173,8 @@ def _logp_score_features(logdensity_fn: LogDensityFn, x: jax.Array, mode: Jacobi
         if feats is None:
             raise ValueError(
                 "the kernel reads features from the log density (feature_kernel "
-                "without feature_fn): logdensity_fn must return (logp (n,), features (n, f))"
+                "without feature_fn): logdensity_fn must return "
+                "(logp (n,), features (n, f))"
             )
         return jnp.concatenate([logp[:, None], feats.astype(logp.dtype)], axis=1)
 
@@ -190,7 +194,9 @@ def _zero_rows(a: jax.Array, ok: jax.Array) -> jax.Array:
     return jnp.where(ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0.0)
 
 
-def importance_log_weights(log_surrogate: jax.Array, log_target: jax.Array) -> jax.Array:
+def importance_log_weights(
+    log_surrogate: jax.Array, log_target: jax.Array
+) -> jax.Array:
     """Normalised log weights log(w_j / Σ w) with w_j = ρ(x_j) / p(Γ(x_j)).
 
     Computed in log space (a log-softmax), so weights of 1e±300 neither overflow
@@ -222,11 +228,12 @@ def stein_direction(
     log_target_fn: Callable[[jax.Array], jax.Array] | None = None,
     jacobian: JacobianMode = "auto",
 ) -> tuple[jax.Array, StepInfo]:
-    """The Stein direction φ_i = Σ_j a_j [k(θ_j, θ_i) ∇log ρ(θ_j) + ∇_{θ_j} k(θ_j, θ_i)].
+    """The Stein direction φ_i = Σ_j a_j [k_ji ∇log ρ(θ_j) + ∇_{θ_j} k_ji].
 
-    a_j = 1/n (SVGD, eq. (1)) or a_j = w_j / Σw with w_j = ρ(θ_j) / p(Γ(θ_j))
-    when log_target_fn is given (discrete SVGD, eq. (4)). Particles whose log ρ,
-    score or features are not finite get zero score and zero weight.
+    Here k_ji = k(θ_j, θ_i), and a_j = 1/n (SVGD, eq. (1)), or, when
+    log_target_fn is given, a_j = w_j / Σw with w_j = ρ(θ_j) / p(Γ(θ_j))
+    (discrete SVGD, eq. (4)). Particles whose log ρ, score or features are not
+    finite get zero score and zero weight.
 
     Args:
       logdensity_fn: batched (n, d) -> (n,) log ρ, or (n, d) -> ((n,), (n, f))
@@ -248,7 +255,9 @@ def stein_direction(
     x = particles
     n = x.shape[0]
     if kernel.uses_density_features:
-        logp, score, (feats, feats_jac) = _logp_score_features(logdensity_fn, x, jacobian)
+        logp, score, (feats, feats_jac) = _logp_score_features(
+            logdensity_fn, x, jacobian
+        )
         ok = _finite_rows(logp, score, feats, feats_jac)
         features = (_zero_rows(feats, ok), _zero_rows(feats_jac, ok))
     else:
@@ -343,7 +352,9 @@ def build_svgd_step(
 
     def step(state: SVGDState, key: jax.Array) -> tuple[SVGDState, StepInfo]:
         del key
-        phi, info = stein_direction(logdensity_fn, kernel, state.particles, jacobian=jacobian)
+        phi, info = stein_direction(
+            logdensity_fn, kernel, state.particles, jacobian=jacobian
+        )
         return _apply(optimizer, state, phi, info)
 
     return step
@@ -434,7 +445,9 @@ def _check_builder(logdensity_fn, kernel, optimizer, jacobian) -> None:
     if not callable(logdensity_fn):
         raise ValueError(f"logdensity_fn must be callable; got {logdensity_fn!r}")
     if kernel is not None and not isinstance(kernel, Kernel):
-        raise ValueError(f"kernel must be a mjstamp.svgd Kernel or None; got {kernel!r}")
+        raise ValueError(
+            f"kernel must be a mjstamp.svgd Kernel or None; got {kernel!r}"
+        )
     if not isinstance(optimizer, optax.GradientTransformation):
         raise ValueError(
             f"optimizer must be an optax.GradientTransformation; got {optimizer!r}"
