@@ -78,13 +78,13 @@ def billiards_task():
 # straight at it, and at its mirror image behind the top wall (ball centres
 # bounce at y = 0.5 - R = 0.46, so the image is at y = 0.92).
 STRAIGHT = np.array([0.8, 0.2]) / np.hypot(0.8, 0.2) * 2.0
-OFF_TOP = np.array([0.8, 1.12]) / np.hypot(0.8, 1.12) * 3.0
+OFF_TOP = np.array([0.8, 1.12]) / np.hypot(0.8, 1.12) * 2.0
 # Shots found by a MuJoCo C sweep of the box that pocket the target ball.
 POCKETING = {
-    "0000-top": [2.87437186, 0.66331658],
-    "0000-bottom": [3.31658291, 0.98492462],
-    "1000-bottom": [1.78894472, 2.99497487],
-    "0100-top": [2.4321608, -2.75376884],
+    "0000-top": [2.71356784, 0.62311558],
+    "0000-bottom": [3.1959799, 0.94472362],
+    "1000-bottom": [1.70854271, 2.75376884],
+    "0100-top": [2.59296482, -2.99497487],
 }
 
 
