@@ -158,7 +158,8 @@ def solve(task, config: dict, *, seed: int = 0, progress: bool | None = None) ->
         seed=seed, **{k: config[k] for k in STAMP_KEYS if k in config}
     )
     result = svgd.run_stamp(
-        task.log_posterior, theta0, task.kernel(), stamp_config, progress=progress
+        task.log_posterior, theta0, task.kernel(), stamp_config, progress=progress,
+        jit=lambda step, state, key, phase: _jit(step, task, f"stamp-{phase}", state, key),
     )
     jax.block_until_ready(result.particles)
     t_stamp = time.perf_counter()

@@ -15,7 +15,7 @@ import dataclasses
 import math
 import sys
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -228,6 +228,7 @@ def run_stamp(
     svgd_optimizer: optax.GradientTransformation | None = None,
     sgd_optimizer: optax.GradientTransformation | None = None,
     progress: bool | None = None,
+    jit: Callable[[Callable, Any, jax.Array, str], Callable] | None = None,
 ) -> StampResult:
     """Runs STAMP: (discrete) SVGD until converged, then SGD until converged.
 
@@ -246,6 +247,9 @@ def run_stamp(
       sgd_optimizer: optax transformation of the SGD phase; default
         Adam(config.sgd_learning_rate).
       progress: show a tqdm bar; None shows it when stderr is a terminal.
+      jit: how each phase's step is compiled, jit(step, example_state,
+        example_key, phase_name) -> compiled step; default `jax.jit`. A task
+        passes `mjstamp.tracecache.cached_jit` here so a re-run skips tracing.
 
     Returns:
       `StampResult`.
@@ -299,7 +303,10 @@ def run_stamp(
 
     def run_phase(phase, step, state, max_iters):
         nonlocal key
-        step = jax.jit(step)
+        if jit is None:
+            step = jax.jit(step)
+        else:
+            step = jit(step, state, key, "svgd" if phase == PHASE_SVGD else "sgd")
         means, moves = [], []
         for _ in range(max_iters):
             key, sub = jax.random.split(key)
