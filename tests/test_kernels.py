@@ -19,6 +19,7 @@ from mjstamp.svgd import (
     sum_kernels,
     von_mises,
 )
+from mjstamp.svgd.kernels import _median_pairwise_distance
 
 N, D = 9, 5
 
@@ -136,6 +137,26 @@ def test_gram_is_positive_semidefinite_on_random_points(points, family):
     with jax.enable_x64(True):
         gram = np.asarray(_RANDOM_POINT_GRAMS[family](jnp.asarray(points)))
     assert np.linalg.eigvalsh(gram).min() > -1e-9
+
+
+_MEDIAN = jax.jit(_median_pairwise_distance)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    hnp.arrays(
+        np.float32,
+        (13, 2),
+        elements=st.sampled_from([0.0, 0.5, 1.0, -2.0])  # many ties
+        | st.floats(-3, 3, allow_nan=False, width=32),
+    ),
+)
+def test_bisection_median_equals_sorting_median(points):
+    """The exact bisection median equals numpy's, ties and coincident points too."""
+    d2 = np.sum((points[:, None] - points[None]) ** 2, axis=-1)
+    expected = np.median(np.sqrt(d2[np.triu_indices(13, 1)]))
+    got = float(_MEDIAN(jnp.asarray(d2)))
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7)
 
 
 def test_von_mises_wraps_around():

@@ -36,9 +36,10 @@ def value_and_batched_jacobian(
     Args:
       fn: batched function (n, d) -> (n, m), row i depending on x[i] only.
       x: (n, d) particles.
-      mode: 'rev' (one forward pass, m pullbacks), 'fwd' (one forward pass, d
-        pushforwards) or 'auto' (whichever of m and d is smaller; reads m with
-        an abstract trace of fn, no compilation).
+      mode: 'rev' (one forward pass, m pullbacks), 'fwd' (one forward pass
+        carrying d tangents) or 'auto' (whichever of m and d is smaller; reads
+        m with an abstract trace of fn, which compiles nothing but traces fn a
+        second time: pass 'fwd' or 'rev' when tracing fn is expensive).
 
     Returns:
       (out, jac): (n, m) values and (n, m, d) Jacobians, jac[i] = ∂f(x)[i] / ∂x[i].
@@ -57,7 +58,10 @@ def value_and_batched_jacobian(
         )
         (jac_t,) = jax.vmap(pullback)(cotangents)  # (m, n, d)
         return out, jnp.swapaxes(jac_t, 0, 1)
-    out, push = jax.linearize(fn, x)
+    # vmap over the tangents only: the primal does not depend on them, so it is
+    # computed once, unbatched, and only the tangent arithmetic is d-wide.
     tangents = jnp.broadcast_to(jnp.eye(d, dtype=x.dtype)[:, None, :], (d, n, d))
-    jac_t = jax.vmap(push)(tangents)  # (d, n, m)
-    return out, jnp.moveaxis(jac_t, 0, -1)
+    out, jac_t = jax.vmap(lambda t: jax.jvp(fn, (x,), (t,)), out_axes=(None, 0))(
+        tangents
+    )
+    return out, jnp.moveaxis(jac_t, 0, -1)  # (d, n, m) -> (n, m, d)

@@ -181,15 +181,46 @@ def _sqdist(z: jax.Array) -> jax.Array:
     return d2 * (1.0 - jnp.eye(z.shape[0], dtype=z.dtype))
 
 
+def _median_pairwise_distance(d2: jax.Array) -> jax.Array:
+    """median_{i<j} √d2_ij, exactly, from a symmetric (n, n) d2 with zero diagonal.
+
+    Sorting the n(n−1)/2 distances costs ~180 ms per step at n = 1000 on a CPU;
+    this bisects on the bit patterns of d2 instead (non-negative floats order
+    like their bits): one counting pass over d2 per bit, ~8x faster.
+    """
+    n = d2.shape[0]
+    m = n * (n - 1) // 2
+    itype = {4: jnp.int32, 8: jnp.int64}[d2.dtype.itemsize]
+    bits = jax.lax.bitcast_convert_type(d2, itype)
+
+    def count_le(t):  # off-diagonal entries <= t; the n diagonal zeros always are
+        return jnp.sum(bits <= t) - n
+
+    # The off-diagonal entries hold every pair twice; the median of that doubled
+    # set is the median over i<j: the mean of its order statistics m−1 and m.
+    def bisect(_, bounds):
+        lo, hi = bounds
+        mid = lo + (hi - lo) // 2
+        enough = count_le(mid) >= m
+        return jnp.where(enough, lo, mid + 1), jnp.where(enough, mid, hi)
+
+    nbits = 8 * d2.dtype.itemsize
+    _, hi = jax.lax.fori_loop(0, nbits, bisect, (jnp.zeros((), itype), jnp.max(bits)))
+    lower = jax.lax.bitcast_convert_type(hi, d2.dtype)
+    upper = jnp.where(
+        count_le(hi) >= m + 1, lower, jnp.min(jnp.where(bits > hi, d2, jnp.inf))
+    )
+    return 0.5 * (jnp.sqrt(lower) + jnp.sqrt(upper))
+
+
 def _median_bandwidth_from_sqdist(d2: jax.Array) -> jax.Array:
     """Median heuristic s = median_{i<j} dist_ij / √(log n) from squared distances."""
     n = d2.shape[0]
-    iu = np.triu_indices(n, k=1)
-    med = jnp.median(jnp.sqrt(d2[iu]))
+    # No gradient flows through the bandwidth (and none into the bisection).
+    med = _median_pairwise_distance(jax.lax.stop_gradient(d2))
     # N.B. when most particles of a group coincide the median is 0; any positive
     # bandwidth gives coincident particles zero repulsion, so fall back to 1.
-    s = jnp.where(med > 0, med / math.sqrt(math.log(n)), 1.0)
-    return jax.lax.stop_gradient(s)
+    return jnp.where(med > 0, med / math.sqrt(math.log(n)), 1.0)
 
 
 def _separable_repulsion(
