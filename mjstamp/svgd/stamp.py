@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
@@ -55,7 +56,7 @@ def _positive(value, name: str, *, allow_schedule: bool = False) -> None:
         return
     if (
         isinstance(value, bool)
-        or not isinstance(value, (int, float))
+        or not isinstance(value, numbers.Real)
         or not (value > 0 and math.isfinite(value))
     ):
         what = "a float > 0 or an optax schedule" if allow_schedule else "> 0"
@@ -63,7 +64,11 @@ def _positive(value, name: str, *, allow_schedule: bool = False) -> None:
 
 
 def _count(value, name: str, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, numbers.Integral)
+        or value < minimum
+    ):
         raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
 
 
@@ -119,7 +124,7 @@ class StampConfig:
             value = getattr(self, name)
             if (
                 isinstance(value, bool)
-                or not isinstance(value, (int, float))
+                or not isinstance(value, numbers.Real)
                 or not value >= 0
             ):
                 raise ValueError(f"{name} must be a float >= 0; got {value!r}")
