@@ -256,7 +256,7 @@ def test_bad_construction_raises_value_error(make, match):
             jnp.zeros((4, 3)),
             r"sum_kernels terms must cover .* coordinates \[1\]",
         ),
-        (rbf(), jnp.zeros((4,)), r"shape \(n, D\)"),
+        (rbf(), jnp.zeros((4,)), r"x must be a 2-D array of shape \(n, d\)"),
         (rbf(), jnp.zeros((1, 3)), r"n >= 2"),
         (feature_kernel(), jnp.zeros((4, 3)), r"logdensity_fn must return"),
     ],

@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjstamp.svgd._checks import check_particles
 from mjstamp.svgd._jacobian import JacobianMode, check_mode, value_and_batched_jacobian
 
 __all__ = [
@@ -266,18 +267,6 @@ def _uniform_weights(n: int, dtype) -> jax.Array:
     return jnp.full((n,), 1.0 / n, dtype=dtype)
 
 
-def _check_x(x: jax.Array, what: str = "x") -> None:
-    if x.ndim != 2:
-        raise ValueError(
-            f"{what} must be a 2-D array of shape (n, D); got shape {x.shape}"
-        )
-    if x.shape[0] < 2:
-        raise ValueError(
-            f"{what}: a kernel over particles needs n >= 2 particles; "
-            f"got n={x.shape[0]}"
-        )
-
-
 # ----------------------------------------------------------------------------
 # Kernels
 
@@ -399,7 +388,7 @@ class _Stationary(Kernel):
                 "features from the log density are read by feature_kernel(...) only; "
                 f"got them for a {type(self).__name__} kernel"
             )
-        _check_x(x)
+        check_particles(x, name="x")
         n, dim = x.shape
         groups = self._group_indices(dim)
         specs = self._bandwidth_specs(len(groups))
@@ -560,7 +549,7 @@ class SumKernel(Kernel):
                 "features from the log density are read by an outermost "
                 "feature_kernel(...) only; got them for sum_kernels"
             )
-        _check_x(x)
+        check_particles(x, name="x")
         n, dim = x.shape
         gram = jnp.zeros((n, n), x.dtype)
         repulsion = jnp.zeros((n, dim if jac is None else jac.shape[-1]), x.dtype)
@@ -673,7 +662,7 @@ class FeatureKernel(Kernel):
 
     def evaluate(self, x, weights=None, *, jac=None, features=None) -> KernelTerms:
         """See `Kernel.evaluate`; the repulsion is returned in θ-space, (n, d)."""
-        _check_x(x)
+        check_particles(x, name="x")
         psi, psi_jac = self._embed(x, features)
         if jac is not None:
             psi_jac = jnp.einsum("nek,nkd->ned", psi_jac, jac)
@@ -803,7 +792,7 @@ def median_bandwidth(
       STAMP App. B-C; Liu & Wang (2016), SVGD.
     """
     x = jnp.asarray(x)
-    _check_x(x)
+    check_particles(x, name="x")
     groups = tuple(
         tuple(idx.tolist()) for idx in rbf(groups)._group_indices(x.shape[1])
     )

@@ -24,6 +24,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from mjstamp.svgd._checks import check_particles
 from mjstamp.svgd._jacobian import JacobianMode, check_mode
 from mjstamp.svgd.kernels import Kernel
 from mjstamp.svgd.steps import (
@@ -31,7 +32,6 @@ from mjstamp.svgd.steps import (
     build_dsvgd_step,
     build_sgd_step,
     build_svgd_step,
-    check_particles,
     init,
 )
 

@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from mjstamp.svgd._checks import check_particles
 from mjstamp.svgd._jacobian import JacobianMode, check_mode, value_and_batched_jacobian
 from mjstamp.svgd.kernels import Kernel, flat_bandwidths, rbf
 
@@ -90,27 +91,6 @@ class StepInfo(NamedTuple):
     learning_rate: jax.Array
     displacement: jax.Array
     n_nonfinite: jax.Array
-
-
-def check_particles(particles: Any, *, min_particles: int = 2) -> None:
-    """Raises ValueError unless particles is a float (n, d) array with enough rows."""
-    shape = getattr(particles, "shape", None)
-    if shape is None or len(shape) != 2:
-        raise ValueError(
-            f"particles must be a 2-D array of shape (n, d); got shape {shape}"
-        )
-    n, d = shape
-    if n < min_particles:
-        raise ValueError(
-            f"particles: SVGD needs at least {min_particles} particles "
-            f"(n >= {min_particles}); got n={n}"
-        )
-    if d < 1:
-        raise ValueError(f"particles must have d >= 1 coordinates; got shape {shape}")
-    if not jnp.issubdtype(particles.dtype, jnp.floating):
-        raise ValueError(
-            f"particles must be a floating array; got dtype {particles.dtype}"
-        )
 
 
 def init(particles: jax.Array, optimizer: optax.GradientTransformation) -> SVGDState:
