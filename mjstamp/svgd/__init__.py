@@ -1,9 +1,23 @@
 """mjstamp.svgd: the Stein engine (kernels, SVGD / discrete SVGD / SGD, STAMP loop).
 
 Pure JAX on any differentiable, batched log density: nothing here imports MuJoCo.
-A task plugs in `logdensity_fn(particles (n, d)) -> (n,)`, or
-`-> (logp (n,), features (n, f))` with `feature_kernel()`; see
-`mjstamp.svgd.steps` for the contract and `run_stamp` for the full loop.
+A task plugs in one batched, particle-separable function (row i of every output
+depends on particle i only), called once per step on the whole batch:
+
+    def log_posterior(theta):                # theta: (n, d)
+        traj = rollout(theta)                # the vmapped simulation, n rollouts
+        w = relax.soft_contact_indicator(...)  # (n, f) features of the same rollout
+        return -cost(traj, w), w             # ((n,), (n, f))
+
+    result = svgd.run_stamp(
+        log_posterior, theta0, svgd.feature_kernel(), svgd.StampConfig()
+    )
+
+`feature_kernel()` (no feature_fn) takes w from the log density and puts an RBF
+with a median bandwidth per block over [θ, w(θ)] (App. B-C); log ρ, w and all
+their per-particle Jacobians come from that one batched call. Without features,
+return log ρ alone, (n,), and use any kernel (default `rbf()`). See
+`mjstamp.svgd.steps` for the contract and `run_stamp` for the loop.
 
 References:
   STAMP §III-A, §IV-A/B, Algorithm 1, App. B-C, App. C-B.
