@@ -308,6 +308,8 @@ def run_stamp(
 
     def run_phase(phase, step, state, max_iters):
         nonlocal key
+        if max_iters == 0:  # nothing to run: compile nothing either
+            return state
         if jit is None:
             step = jax.jit(step)
         else:
