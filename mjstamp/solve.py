@@ -22,7 +22,7 @@ from mjstamp import svgd
 from mjstamp.tracecache import cached_jit
 
 STAMP_KEYS = ("svgd_learning_rate", "sgd_learning_rate", "svgd_max_iters", "sgd_max_iters",
-              "min_iters")
+              "min_iters", "jacobian")
 
 
 @dataclasses.dataclass

@@ -57,6 +57,7 @@ def default_config() -> dict:
         "svgd_max_iters": 40,
         "sgd_max_iters": 80,
         "min_iters": 20,
+        "jacobian": "fwd",  # d = 2 tangents beat 1 + 4 pullbacks through the rollout
     }
 
 
