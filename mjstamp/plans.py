@@ -15,18 +15,16 @@ import functools
 import json
 import os
 import tempfile
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
-import mujoco
-import mujoco.rollout
 import numpy as np
 
 from mjstamp.errors import MjstampError
 from mjstamp.scenes._mjx import mjx
+from mjstamp.scenes.rollout import replay as replay_c
 
 SCHEMA_VERSION = 1
 
@@ -112,24 +110,11 @@ def _poses_and_contacts(task, qpos: np.ndarray, chunk: int = 65536):
 
 def simulate_c(task, theta: np.ndarray) -> Replay:
     """Replays particles θ (n, d) in MuJoCo C with the scene's own solver settings."""
-    scene = task.scene
     theta = np.asarray(theta, np.float64)
-    params = task.unpack(theta)
-    qpos0, qvel0, ctrl = task.inputs(params, xp=np)
-    ctrl = np.asarray(ctrl, np.float64)
-    m = scene.m
-    n = theta.shape[0]
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    d = mujoco.MjData(m)
-    state0 = np.empty((n, mujoco.mj_stateSize(m, spec)))
-    for i in range(n):
-        mujoco.mj_resetData(m, d)
-        d.qpos[:], d.qvel[:] = qpos0[i], qvel0[i]
-        mujoco.mj_getState(m, d, state0[i], spec)
-    nthread = max(1, min(n, os.cpu_count() or 1))
-    datas = [mujoco.MjData(m) for _ in range(nthread)]
-    state, _ = mujoco.rollout.rollout(m, datas, state0, ctrl, nstep=task.horizon)
-    return Replay(task, state[..., 1 : 1 + m.nq], source="mujoco")
+    qpos0, qvel0, ctrl = task.inputs(task.unpack(theta), xp=np)
+    states = replay_c(task.scene, qpos0, qvel0, np.asarray(ctrl, np.float64),
+                    fields=("qpos",), solver="scene")
+    return Replay(task, states["qpos"], source="mujoco")
 
 
 def simulate_mjx(task, theta) -> Replay:
@@ -283,8 +268,3 @@ def load(out: str | os.PathLike) -> tuple[dict, dict[str, dict[str, np.ndarray]]
         with np.load(npz, allow_pickle=False) as f:
             arrays[npz.stem] = {k: f[k] for k in f.files}
     return summary, arrays
-
-
-def counts(plans: np.ndarray, ok: np.ndarray) -> Counter:
-    """Counter of task plans among successful entries."""
-    return Counter(p for p, good in zip(plans, ok, strict=True) if good)

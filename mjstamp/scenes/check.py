@@ -73,7 +73,7 @@ def _parameterisation(scene: Scene, spec: CheckSpec):
     dim = len(dofs) + nseg * m.nu
 
     def to_inputs(theta, xp):
-        """theta (n, dim) -> qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu)."""
+        """Theta (n, dim) -> qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu)."""
         n = theta.shape[0]
         qpos = xp.broadcast_to(xp.asarray(qpos0), (n, m.nq))
         qvel = xp.zeros((n, m.nv), theta.dtype)

@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import mujoco
 import mujoco.rollout
 import numpy as np
-from mjstamp.scenes._mjx import mjx
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.scenes._mjx import mjx
 
 # Fields a rollout can return, each of shape (n, T, ...) for steps 1..T.
 STATE_FIELDS = ("qpos", "qvel", "ctrl")

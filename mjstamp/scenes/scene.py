@@ -13,9 +13,9 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mjstamp.scenes._mjx import mjx
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.scenes._mjx import mjx
 
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
 _CUSTOM_PREFIX = "mjstamp.grad."
@@ -213,6 +213,7 @@ class Scene:
             CLI enables x64: see `mjstamp.scenes.gradsafe` for why.
           assets: extra files (name -> bytes) for meshes and includes.
           name: label for messages; defaults to the model name.
+          **overrides: single `GradOptions` fields, e.g. `ls_iterations=8`.
 
         Raises:
           MjstampError: malformed MJCF, missing file, bad option.

@@ -24,7 +24,8 @@ def aim(geom1: str, geom2: str, *, temperature: float = 0.05):
     and t_c the first contact of the pair.
 
     Args:
-      geom1, geom2: geom names.
+      geom1: the moving geom (the cue ball).
+      geom2: the geom to aim at (the target ball).
       temperature: in metres; STAMP's σ = softmax(−L) is temperature 1, too flat
         for distances of a metre or less, so a few centimetres by default.
 

@@ -197,7 +197,8 @@ class Task:
 
         Args:
           name: variable name.
-          low, high: bounds, one per coordinate (low < high).
+          low: lower bounds, one per coordinate.
+          high: upper bounds, one per coordinate (high > low).
           initial_qvel: joints whose initial velocity this variable sets.
           initial_qpos: joints whose initial position this variable sets.
         """
@@ -260,7 +261,8 @@ class Task:
 
         Args:
           name: symbol name; its bit in the task plan follows declaration order.
-          geom1, geom2: geom names.
+          geom1: first geom name.
+          geom2: second geom name.
           before: a geom pair; only steps up to its first contact count.
           alpha: α > 0 of App. B-B, in 1/m: the indicator saturates within
             about 5/α of contact.
@@ -355,7 +357,7 @@ class Task:
         return ("qpos", "qvel", "xpos", "geom_xpos", "geom_xmat", "site_xpos")
 
     def inputs(self, params: dict, xp=jnp):
-        """params -> (qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu))."""
+        """Params -> (qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu))."""
         m = self.scene.m
         n = next(iter(params.values())).shape[0]
         dtype = next(iter(params.values())).dtype
@@ -494,7 +496,7 @@ class Task:
         return svgd.feature_kernel(base, include_inputs=False)
 
     def initial_particles(self, key: jax.Array, n: int) -> jax.Array:
-        """n particles uniform in the bounds (logits: uniform base of App. A)."""
+        """N particles uniform in the bounds (logits: uniform base of App. A)."""
         low = np.concatenate([v.low for v in self.variables])
         high = np.concatenate([v.high for v in self.variables])
         u = jax.random.uniform(key, (n, self.dim), dtype=self.scene.dtype)
