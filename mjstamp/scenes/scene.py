@@ -15,6 +15,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
 
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
@@ -247,6 +248,11 @@ class Scene:
         fields.update(overrides)
         self.grad_options = GradOptions(**fields)
         self.m_grad = self.grad_options.apply(self.m)
+        # N.B. before any trace of mjx.step: MJX's solver forms infinite JVP
+        # coefficients on inactive contact rows (NaN gradients with elliptic
+        # cones even in float64, with hinges in float32); the patch changes
+        # derivatives only, forward values stay bit-identical. See gradsafe.
+        gradsafe.patch_mjx()
         self.dtype = jnp.float64 if precision == "float64" else jnp.float32
         self.precision = precision
         self.mx = _cast(mjx.put_model(self.m_grad), self.dtype)

@@ -1,0 +1,247 @@
+"""Gradient-safe patches for MJX's constraint solver (float32 reverse mode).
+
+Reverse-mode gradients through ``mjx.step`` with contacts come back NaN in
+float32 although every forward value is finite. The cause is always the same
+pattern: a JVP rule whose *coefficient* is infinite (``1 / sqrt(0)`` in the
+rule of ``sqrt``, ``y ** -2`` in the rule of ``x / y`` with a tiny ``y``) meets
+a cotangent that is exactly zero (an inactive constraint row, a zero search
+direction), and ``0 * inf = NaN`` then spreads through the whole rollout.
+Float64 hides the division culprit (``y ** -2`` stops overflowing) but not
+the elliptic-cone ``sqrt(0)``, which NaNs in any precision.
+
+``patch_mjx()`` rewrites a handful of expressions inside
+``mujoco.mjx._src.solver`` so that their *forward* value is computed by the
+very same operation as before (bit-identical), while their JVP is evaluated
+with the "double-where" trick: the infinite coefficient is never formed, and
+the tangent is defined as 0 where the primal is degenerate.
+
+Culprits patched (MJX 3.17.0 line numbers, ``mujoco/mjx/_src/solver.py``).
+Ablation on the planar-billiards scene: #2 alone causes NaN in every config
+with a hinge dof (pyramidal or elliptic, Newton or CG), #3 alone causes NaN in
+every elliptic config *in float64 too*; #1 and #4 never produced a NaN on
+their own here (#1 only feeds comparisons, so JAX prunes its tangent; it is
+what ``checkify`` flags first though) and are patched defensively:
+
+1. ``_linesearch`` L507: ``dmag = 2.0 * jp.sqrt(rows_0 * rows_2) + ...``.
+   ``sqrt(0)`` whenever no constraint row is active. ``dmag`` only feeds the
+   acceptance tolerance ``gtol_accept`` (a convergence heuristic used in
+   comparisons), so it gets ``jax.lax.stop_gradient``.
+2. ``_linesearch`` L521/L522/L572: the Newton steps
+   ``alpha - deriv_0 / deriv_1``. ``deriv_1`` is the line-search curvature; it
+   is tiny (but non-zero) when the search direction is ~0, e.g. at rest or for
+   a small rotational inertia, so ``deriv_1 ** -2`` overflows in float32.
+   Replaced by ``safe_div`` (tangent 0 when ``|deriv_1| <= mjMINVAL``).
+3. ``_LSPoint.create`` L183 (elliptic cones): ``t = jp.sqrt(tsqr)`` with
+   ``tsqr == 0`` for every inactive contact (its rows are zeroed), plus the
+   divisions by ``t`` and ``tsqr`` (L202/L203). Replaced by ``safe_sqrt`` /
+   ``safe_div``.
+4. ``_update_constraint`` L327 (elliptic cones): ``force / (t + ...)`` where
+   ``t`` may be tiny in the cone's middle zone. Replaced by ``safe_div``.
+
+The rewrite is applied to the source text of the installed functions and each
+target expression must be found exactly once, so an MJX upgrade that changes
+these lines makes ``patch_mjx`` fail loudly instead of silently patching the
+wrong thing.
+
+Recommended options for gradient rollouts (measured on planar billiards, two
+balls of radius 0.03, 256 shots, 150-300 steps; see the integration report):
+
+* ``opt.iterations = 1`` (required: reverse mode cannot go through the
+  solver's ``while_loop``), ``opt.ls_iterations >= 4`` (``ls_iterations=1``
+  leaves the single Newton step unconverged; 95th-percentile gradient norm
+  went from 4e3 to 4e5 and the max to 3e11 over 300 steps).
+* ``solver="Newton"``, ``cone="pyramidal"``: cheapest, and the condim-3
+  pyramidal path needs only culprit #2 fixed. Elliptic cones need this patch
+  in *any* precision.
+* Contact ``solref="0.05 1"`` (timeconst >= 5 dt for dt = 0.01): the default
+  0.02 lets 10% of 300-step shots exceed gradient norm 1e3; 0.05 -> 3%,
+  0.1 -> 0.8%. Add slide-joint ``damping`` ~0.05 (rolling-resistance proxy):
+  95th-percentile norm 33 -> 1.5 at timeconst 0.05.
+* float32 + ``patch_mjx()``; float64 costs ~1.9x per shot-step on CPU and
+  still needs the patch for elliptic cones.
+
+Typical use::
+
+    from mjstamp.scenes import gradsafe
+    gradsafe.patch_mjx()  # before the first jit trace of mjx.step
+"""
+
+from __future__ import annotations
+
+import inspect
+import textwrap
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jp
+import mujoco
+
+__all__ = ["patch_mjx", "is_patched", "safe_div", "safe_sqrt"]
+
+# N.B. mjMINVAL (1e-15) is MuJoCo's own "treat as zero" threshold; it is
+# representable in float32, and 1 / mjMINVAL = 1e15 keeps every tangent
+# coefficient below float32 overflow for cotangents up to ~1e23.
+_FLOOR = mujoco.mjMINVAL
+
+_PATCHED = False
+
+
+@jax.custom_jvp
+def safe_div(x: jax.Array, y: jax.Array) -> jax.Array:
+    """Computes ``x / y`` with a gradient that is finite for tiny ``y``.
+
+    The forward value is exactly ``x / y`` (same XLA op as plain division).
+    The tangent is the usual ``(dx - (x / y) dy) / y`` where ``|y| > mjMINVAL``
+    and 0 elsewhere, i.e. a degenerate quotient (its denominator has collapsed)
+    is treated as locally constant.
+
+    Args:
+      x: numerator.
+      y: denominator.
+
+    Returns:
+      ``x / y``.
+    """
+    return x / y
+
+
+@safe_div.defjvp
+def _safe_div_jvp(primals, tangents):
+    x, y = primals
+    dx, dy = tangents
+    out = x / y
+    ok = jp.abs(y) > _FLOOR
+    # N.B. double-where: substitute a harmless denominator *before* dividing so
+    # that neither the tangent nor its transpose ever holds 1/0 or y**-2 = inf;
+    # a single where on the result would still give 0 * inf = NaN in reverse.
+    y_ok = jp.where(ok, y, jp.ones_like(y))
+    dout = jp.where(ok, (dx - out * dy) / y_ok, jp.zeros_like(out))
+    return out, dout
+
+
+@jax.custom_jvp
+def safe_sqrt(x: jax.Array) -> jax.Array:
+    """Computes ``sqrt(x)`` with a zero (not infinite) gradient at ``x <= 0``.
+
+    Args:
+      x: argument.
+
+    Returns:
+      ``jp.sqrt(x)`` (forward value unchanged, including NaN for ``x < 0``).
+    """
+    return jp.sqrt(x)
+
+
+@safe_sqrt.defjvp
+def _safe_sqrt_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    out = jp.sqrt(x)
+    ok = x > 0
+    # N.B. double-where, see _safe_div_jvp: 0.5 / sqrt(0) is never formed.
+    s_ok = jp.sqrt(jp.where(ok, x, jp.ones_like(x)))
+    dout = jp.where(ok, 0.5 * dx / s_ok, jp.zeros_like(out))
+    return out, dout
+
+
+# (function name, [(old expression, new expression), ...]). Every ``old`` must
+# occur exactly once in the installed function's source.
+_EDITS: dict[str, list[tuple[str, str]]] = {
+    "_linesearch": [
+        # Culprit 1: convergence heuristic, no meaningful gradient.
+        (
+            "dmag = 2.0 * jp.sqrt(rows_0 * rows_2) + jp.abs(quad_gauss[1])",
+            "dmag = jax.lax.stop_gradient(2.0 * jp.sqrt(rows_0 * rows_2) + jp.abs(quad_gauss[1]))",
+        ),
+        # Culprit 2: Newton steps of the zoom line search.
+        (
+            "point_fn(lo.alpha - lo.deriv_0 / lo.deriv_1)",
+            "point_fn(lo.alpha - _gs_safe_div(lo.deriv_0, lo.deriv_1))",
+        ),
+        (
+            "point_fn(hi.alpha - hi.deriv_0 / hi.deriv_1)",
+            "point_fn(hi.alpha - _gs_safe_div(hi.deriv_0, hi.deriv_1))",
+        ),
+        (
+            "point_fn(p0.alpha - p0.deriv_0 / p0.deriv_1)",
+            "point_fn(p0.alpha - _gs_safe_div(p0.deriv_0, p0.deriv_1))",
+        ),
+    ],
+    "_LSPoint.create": [
+        # Culprit 3: elliptic cone, tangential force norm of inactive contacts.
+        ("t = jp.sqrt(tsqr)", "t = _gs_safe_sqrt(tsqr)"),
+        (
+            "t1 = (uv + alpha * vv) / t",
+            "t1 = _gs_safe_div(uv + alpha * vv, t)",
+        ),
+        (
+            "t2 = vv / t - (uv + alpha * vv) * t1 / tsqr",
+            "t2 = _gs_safe_div(vv, t) - _gs_safe_div((uv + alpha * vv) * t1, tsqr)",
+        ),
+    ],
+    "_update_constraint": [
+        # Culprit 4: elliptic cone, friction force direction.
+        (
+            "force_fri = -force / (t + ~middle_zone * mujoco.mjMINVAL)",
+            "force_fri = _gs_safe_div(-force, t + ~middle_zone * mujoco.mjMINVAL)",
+        ),
+    ],
+}
+
+
+def _rewrite(module, qualname: str, edits: list[tuple[str, str]]) -> Callable:
+    """Returns a copy of ``module.<qualname>`` with textual edits applied."""
+    owner, _, name = qualname.rpartition(".")
+    holder = getattr(module, owner) if owner else module
+    fn = inspect.unwrap(getattr(holder, name))
+    fn = getattr(fn, "__func__", fn)  # classmethod -> function
+    src = textwrap.dedent(inspect.getsource(fn))
+    for old, new in edits:
+        n = src.count(old)
+        if n != 1:
+            raise RuntimeError(
+                f"gradsafe: expected exactly one `{old}` in {module.__name__}."
+                f"{qualname}, found {n}; MJX changed, re-audit the patch."
+            )
+        src = src.replace(old, new)
+    if src.startswith("@classmethod"):
+        src = src[len("@classmethod") :].lstrip()
+    # N.B. exec in the solver module's own globals so that every other name the
+    # function uses (jp, math, support, ConeType, ...) resolves exactly as in
+    # the original; only the two safe helpers are added.
+    glb = module.__dict__
+    glb.setdefault("_gs_safe_div", safe_div)
+    glb.setdefault("_gs_safe_sqrt", safe_sqrt)
+    loc: dict[str, object] = {}
+    exec(compile(src, f"<gradsafe:{qualname}>", "exec"), glb, loc)  # pylint: disable=exec-used
+    return loc[name]
+
+
+def patch_mjx() -> None:
+    """Patches MJX's solver so float32 reverse-mode gradients stay finite.
+
+    Idempotent. Must run before the first ``jax.jit`` trace of ``mjx.step``
+    (already-compiled functions keep the unpatched code). Forward values are
+    unchanged bit for bit: each rewritten expression computes its primal with
+    the same operation as before; only JVP rules differ, and only where the
+    original rule was infinite.
+
+    Raises:
+      RuntimeError: if the installed MJX no longer contains the expressions
+        this patch was written against.
+    """
+    global _PATCHED
+    if _PATCHED:
+        return
+    from mujoco.mjx._src import solver  # pylint: disable=g-import-not-at-top
+
+    # Build everything first so a failed rewrite leaves MJX untouched.
+    new = {q: _rewrite(solver, q, e) for q, e in _EDITS.items()}
+    solver._linesearch = new["_linesearch"]  # pylint: disable=protected-access
+    solver._update_constraint = new["_update_constraint"]  # pylint: disable=protected-access
+    solver._LSPoint.create = classmethod(new["_LSPoint.create"])  # pylint: disable=protected-access
+    _PATCHED = True
+
+
+def is_patched() -> bool:
+    """Returns whether ``patch_mjx`` has been applied in this process."""
+    return _PATCHED
