@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from collections import Counter
 from pathlib import Path
 
@@ -74,8 +75,6 @@ def sweep(task, *, grid: int = 200, chunk: int = 4096, progress: bool | None = N
     found: Counter = Counter()
     codes: dict[str, str] = {}
     ok_total = 0
-    import sys
-
     show = sys.stderr.isatty() if progress is None else progress
     for start in tqdm(range(0, len(theta), chunk), desc=f"sweep {task.name}", unit="chunk",
                       disable=not show):

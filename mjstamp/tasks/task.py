@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjstamp import relax
-from mjstamp.errors import MjstampError, valid_list
+from mjstamp.errors import MjstampError
 from mjstamp.scenes.distance import make_distance_fn
 from mjstamp.scenes.scene import Scene
 
@@ -335,9 +335,6 @@ class Task:
             raise MjstampError(f"task {self.name!r} declares no variables")
         if not self.costs:
             raise MjstampError(f"task {self.name!r} declares no costs")
-        if self.scene.m.nu and self.controls_fn is None:
-            # Zero controls are a valid choice, but say so explicitly.
-            pass
 
     # ------------------------------------------------------------------
     # What the engine needs.
@@ -519,8 +516,3 @@ class Task:
             "costs": {t.name: t.weight for t in self.costs},
             "priors": {t.name: t.weight for t in self.priors},
         }
-
-
-def valid_names(items) -> str:
-    """Comma-separated names for error messages."""
-    return valid_list([i.name for i in items])
