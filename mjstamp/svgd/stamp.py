@@ -92,8 +92,7 @@ class StampConfig:
       seed: seeds the PRNG keys handed to the steps and to a callable
         `initial_particles`; the same seed gives the same run.
       jacobian: 'auto', 'fwd' or 'rev': how the SVGD step differentiates a log
-        density that also returns kernel features; 'fwd' also makes the SGD
-        step take its scores in forward mode (d tangents instead of a pullback).
+        density that also returns kernel features.
     """
 
     svgd_learning_rate: float | Schedule = 1e-2
@@ -293,9 +292,7 @@ def run_stamp(
             svgd_optimizer,
             jacobian=config.jacobian,
         )
-    sgd_step = build_sgd_step(
-        logdensity_fn, sgd_optimizer, jacobian="fwd" if config.jacobian == "fwd" else "rev"
-    )
+    sgd_step = build_sgd_step(logdensity_fn, sgd_optimizer)
 
     show = sys.stderr.isatty() if progress is None else bool(progress)
     bar = tqdm(
