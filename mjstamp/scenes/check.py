@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjstamp.errors import MjstampError
-from mjstamp.scenes.rollout import replay
+from mjstamp.scenes.rollout import replay, set_columns
 from mjstamp.scenes.scene import Scene
 
 
@@ -78,11 +78,7 @@ def _parameterisation(scene: Scene, spec: CheckSpec):
         qpos = xp.broadcast_to(xp.asarray(qpos0), (n, m.nq))
         qvel = xp.zeros((n, m.nv), theta.dtype)
         if len(dofs):
-            if xp is np:
-                qvel = qvel.copy()
-                qvel[:, dofs] = theta[:, : len(dofs)]
-            else:
-                qvel = qvel.at[:, dofs].set(theta[:, : len(dofs)])
+            qvel = set_columns(qvel, dofs, theta[:, : len(dofs)])
         if nseg:
             seg = theta[:, len(dofs) :].reshape(n, nseg, m.nu)
             ctrl = xp.repeat(seg, T // nseg, axis=1)

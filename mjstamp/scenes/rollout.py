@@ -22,6 +22,26 @@ FIELDS = STATE_FIELDS + POSE_FIELDS
 Trajectory = dict[str, jax.Array]
 
 
+def cast_floats(tree, dtype):
+    """Casts the floating-point array leaves of a pytree (an MJX Model or Data) to dtype."""
+
+    def f(x):
+        if isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(x.dtype, jnp.floating):
+            return jnp.asarray(x, dtype)
+        return x
+
+    return jax.tree_util.tree_map(f, tree)
+
+
+def set_columns(a, idx, values):
+    """Returns a with a[:, idx] = values: a copy for numpy arrays, `.at[].set` for JAX."""
+    if isinstance(a, np.ndarray):
+        a = a.copy()
+        a[:, idx] = values
+        return a
+    return a.at[:, idx].set(values)
+
+
 def _check_fields(fields: Sequence[str]) -> tuple[str, ...]:
     fields = tuple(fields)
     for f in fields:
@@ -93,10 +113,7 @@ def build_rollout(
     # N.B. built eagerly even when first asked for inside a trace (a task's log
     # posterior under jit): a traced d0 memoised in the scene would leak.
     with jax.ensure_compile_time_eval():
-        d0 = jax.tree_util.tree_map(
-            lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
-            mjx.make_data(mx),
-        )
+        d0 = cast_floats(mjx.make_data(mx), dtype)
 
     def step(dx, u):
         dx = mjx.step(mx, dx.replace(ctrl=u))

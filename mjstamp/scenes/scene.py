@@ -17,6 +17,7 @@ import numpy as np
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
+from mjstamp.scenes.rollout import build_rollout, cast_floats
 
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
 _CUSTOM_PREFIX = "mjstamp.grad."
@@ -255,7 +256,7 @@ class Scene:
         gradsafe.patch_mjx()
         self.dtype = jnp.float64 if precision == "float64" else jnp.float32
         self.precision = precision
-        self.mx = _cast(mjx.put_model(self.m_grad), self.dtype)
+        self.mx = cast_floats(mjx.put_model(self.m_grad), self.dtype)
         self._names = {
             kind: {
                 mujoco.mj_id2name(self.m, obj, i): i
@@ -338,22 +339,7 @@ class Scene:
         Memoised per (horizon, options), so every caller shares one compiled
         function; jax.jit itself caches one executable per batch size.
         """
-        from mjstamp.scenes.rollout import build_rollout
-
         key = (int(horizon), tuple(sorted(kwargs.items())))
         if key not in self._rollouts:
             self._rollouts[key] = build_rollout(self, horizon, **kwargs)
         return self._rollouts[key]
-
-
-def _cast(tree, dtype):
-    """Casts the floating-point array leaves of an MJX pytree to `dtype`."""
-
-    def f(x):
-        if isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(
-            x.dtype, jnp.floating
-        ):
-            return jnp.asarray(x, dtype)
-        return x
-
-    return jax.tree_util.tree_map(f, tree)

@@ -29,6 +29,7 @@ import numpy as np
 from mjstamp import relax
 from mjstamp.errors import MjstampError
 from mjstamp.scenes.distance import make_distance_fn
+from mjstamp.scenes.rollout import set_columns
 from mjstamp.scenes.scene import Scene
 
 KINDS = ("box", "angle", "logits")
@@ -358,23 +359,15 @@ class Task:
         m = self.scene.m
         n = next(iter(params.values())).shape[0]
         dtype = next(iter(params.values())).dtype
-        qpos = xp.broadcast_to(xp.asarray(m.qpos0, dtype), (n, m.nq))
-        qvel = xp.zeros((n, m.nv), dtype)
+        state = {
+            "qpos": xp.broadcast_to(xp.asarray(m.qpos0, dtype), (n, m.nq)),
+            "qvel": xp.zeros((n, m.nv), dtype),
+        }
         for v in self.variables:
             for field, adr in (("qpos", v.qpos), ("qvel", v.qvel)):
-                if adr is None:
-                    continue
-                idx = np.asarray(adr)
-                if xp is np:
-                    target = qpos if field == "qpos" else qvel
-                    target = target.copy()
-                    target[:, idx] = params[v.name]
-                else:
-                    target = (qpos if field == "qpos" else qvel).at[:, idx].set(params[v.name])
-                if field == "qpos":
-                    qpos = target
-                else:
-                    qvel = target
+                if adr is not None:
+                    state[field] = set_columns(state[field], np.asarray(adr), params[v.name])
+        qpos, qvel = state["qpos"], state["qvel"]
         if self.controls_fn is not None:
             ctrl = self.controls_fn(params)
         else:
