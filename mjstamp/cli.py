@@ -151,7 +151,7 @@ def _cmd_solve(args) -> int:
         coverage = modes.coverage(found, truth)
     summary = result.summary(coverage)
     if out is not None:
-        written = plans.save(out, summary, result.arrays())
+        written = plans.save(out, summary, result.arrays(), model=task.scene.m)
         if not args.json:
             print(f"wrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     if args.json:

@@ -20,13 +20,14 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError
 from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.rollout import replay as replay_c
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: scene.mjb, qpos0/qvel0/qvel/ctrl in trajectories.npz
 
 
 class Replay:
@@ -34,17 +35,21 @@ class Replay:
 
     Attributes:
       qpos: (n, T, nq) positions after steps 1..T.
+      qvel: (n, T, nv) velocities after steps 1..T (C replays only, else None).
+      ctrl: (n, T, nu) controls applied at steps 1..T (C replays only, else None).
       xpos: (n, T, nbody, 3) body positions.
       site_xpos: (n, T, nsite, 3) site positions.
       contacts: {(g1, g2): (n, T) bool}, signed distance < 0 (MuJoCo makes a
         contact exactly then for geoms without margin).
     """
 
-    def __init__(self, task, qpos: np.ndarray, source: str):
+    def __init__(self, task, qpos: np.ndarray, source: str, *, qvel=None, ctrl=None):
         self.task = task
         self.scene = task.scene
         self.source = source
         self.qpos = np.asarray(qpos, np.float64)
+        self.qvel = None if qvel is None else np.asarray(qvel, np.float64)
+        self.ctrl = None if ctrl is None else np.asarray(ctrl, np.float64)
         self.xpos, self.site_xpos, self.contacts = _poses_and_contacts(task, self.qpos)
 
     def body_pos(self, body: str | int) -> np.ndarray:
@@ -112,9 +117,9 @@ def simulate_c(task, theta: np.ndarray) -> Replay:
     """Replays particles θ (n, d) in MuJoCo C with the scene's own solver settings."""
     theta = np.asarray(theta, np.float64)
     qpos0, qvel0, ctrl = task.inputs(task.unpack(theta), xp=np)
-    states = replay_c(task.scene, qpos0, qvel0, np.asarray(ctrl, np.float64),
-                    fields=("qpos",), solver="scene")
-    return Replay(task, states["qpos"], source="mujoco")
+    ctrl = np.asarray(ctrl, np.float64)
+    states = replay_c(task.scene, qpos0, qvel0, ctrl, fields=("qpos", "qvel"), solver="scene")
+    return Replay(task, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
 
 
 def simulate_mjx(task, theta) -> Replay:
@@ -236,9 +241,23 @@ def write_atomic(path: Path, write) -> None:
         raise
 
 
-def save(out: Path, summary: dict, arrays: dict[str, dict[str, np.ndarray]]) -> list[Path]:
-    """Writes plans.json and one .npz per entry of `arrays`, each atomically."""
+def save(
+    out: Path, summary: dict, arrays: dict[str, dict[str, np.ndarray]], *, model=None
+) -> list[Path]:
+    """Writes plans.json, one .npz per entry of `arrays` and scene.mjb, each atomically.
+
+    scene.mjb is the task's compiled MjModel (meshes and textures included), so
+    a results directory plays back without the task's code or MJCF files.
+    plans.json is written last: a directory with a plans.json is complete.
+    """
     written = []
+    if model is not None:
+        target = out / "scene.mjb"
+        size = mujoco.mj_sizeModel(model)
+        buffer = np.empty(size, np.uint8)
+        mujoco.mj_saveModel(model, None, buffer)
+        write_atomic(target, lambda f: f.write(buffer.tobytes()))
+        written.append(target)
     for name, data in arrays.items():
         target = out / f"{name}.npz"
         write_atomic(target, lambda f, d=data: np.savez_compressed(f, **d))
@@ -268,3 +287,14 @@ def load(out: str | os.PathLike) -> tuple[dict, dict[str, dict[str, np.ndarray]]
         with np.load(npz, allow_pickle=False) as f:
             arrays[npz.stem] = {k: f[k] for k in f.files}
     return summary, arrays
+
+
+def load_model(out: str | os.PathLike) -> mujoco.MjModel:
+    """The compiled scene saved with a results directory (scene.mjb)."""
+    path = Path(out) / "scene.mjb"
+    if not path.is_file():
+        raise MjstampError(f"{str(path.parent)!r} holds no scene.mjb (not a results directory)")
+    try:
+        return mujoco.MjModel.from_binary_path(str(path))
+    except Exception as e:  # noqa: BLE001 - MuJoCo raises a bare Exception/ValueError
+        raise MjstampError(f"{str(path)!r} is not a readable MuJoCo model: {e}") from None

@@ -115,9 +115,14 @@ class SolveResult:
             "phase": d.phase, "displacement": d.displacement,
         }
         idx = np.flatnonzero(self.returned)
+        qpos0, qvel0, _ = self.task.inputs(self.task.unpack(self.theta[idx]), xp=np)
         trajectories = {
             "particle": idx,
+            "qpos0": np.asarray(qpos0, np.float64),
+            "qvel0": np.asarray(qvel0, np.float64),
             "qpos": self.replay.qpos[idx],
+            "qvel": self.replay.qvel[idx],
+            "ctrl": self.replay.ctrl[idx],
             "xpos": self.replay.xpos[idx],
             "timestep": np.float64(self.task.scene.m.opt.timestep),
         }

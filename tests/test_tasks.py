@@ -133,10 +133,12 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path):
     # Reaching the goal pays: the mean cost fell over the run.
     d = result.diagnostics
     assert d.logdensity_mean[-1] > d.logdensity_mean[0]
-    written = plans.save(tmp_path, summary, result.arrays())
-    assert {p.name for p in written} == {"plans.json", "particles.npz", "trajectories.npz"}
+    written = plans.save(tmp_path, summary, result.arrays(), model=result.task.scene.m)
+    assert {p.name for p in written} == {
+        "plans.json", "particles.npz", "trajectories.npz", "scene.mjb"}
+    assert plans.load_model(tmp_path).ngeom == result.task.scene.m.ngeom
     loaded, arrays = plans.load(tmp_path)
-    assert loaded == json.loads(json.dumps({"schema_version": 1, **summary}))
+    assert loaded == json.loads(json.dumps({"schema_version": plans.SCHEMA_VERSION, **summary}))
     for name, data in result.arrays().items():
         for key, value in data.items():
             np.testing.assert_array_equal(arrays[name][key], value, err_msg=f"{name}.{key}")
@@ -147,7 +149,7 @@ def test_results_directory_errors(tmp_path):
     with pytest.raises(MjstampError, match="no plans.json"):
         plans.load(tmp_path)
     (tmp_path / "plans.json").write_text(json.dumps({"schema_version": 0}))
-    with pytest.raises(MjstampError, match="schema_version 0; this mjstamp reads 1"):
+    with pytest.raises(MjstampError, match="schema_version 0; this mjstamp reads 2"):
         plans.load(tmp_path)
 
 
