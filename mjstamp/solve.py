@@ -111,6 +111,9 @@ class SolveResult:
             "theta": self.theta, "svgd_theta": self.svgd_theta,
             "initial_theta": self.initial_theta, "cost": self.cost,
             "returned": self.returned, "verified": self.verified.ok,
+            # Task plan of every particle's C replay (returned or not), for figures.
+            "task_plan": np.asarray(self.verified.plan, dtype=str),
+            "predicted_task_plan": np.asarray(self.predicted.plan, dtype=str),
             "logdensity_mean": d.logdensity_mean, "logdensity_max": d.logdensity_max,
             "phase": d.phase, "displacement": d.displacement,
         }

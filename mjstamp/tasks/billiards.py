@@ -81,4 +81,5 @@ def make(config: dict) -> Task:
                                     temperature=config["target_temperature"]),
               weight=config["target_weight"])
     task.success(costs.reaches("target", POCKETS, radius=config["pocket_radius"]))
+    task.display(trace=("cue", "target"))
     return task

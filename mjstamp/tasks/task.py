@@ -159,6 +159,7 @@ class Task:
         self.success_fn: Callable | None = None
         self.kernel_weights = {"continuous": 1.0, "angles": 1.0, "actions": 1.0, "symbols": 1.0}
         self.bound_stiffness = 100.0
+        self.display_hints: dict[str, list] = {"trace": [], "force": []}
         self.cache_key: str | None = None  # set by tasks.load for registered tasks
         self._distance_fns: dict[tuple[int, int], Callable] = {}
 
@@ -309,6 +310,22 @@ class Task:
         and a label that becomes part of its task plan (e.g. the pocket).
         """
         self.success_fn = fn
+
+    def display(
+        self, *, trace: Sequence[str] = (), force: Sequence[tuple[str, str]] = ()
+    ) -> None:
+        """How plans are drawn (figures, meshcat playback); no effect on solving.
+
+        Args:
+          trace: bodies whose paths are drawn as lines.
+          force: geom pairs (a, b) whose contact force on b is drawn as an
+            arrow (e.g. the pusher on the block, Fig. 6).
+        """
+        for body in trace:
+            self.scene.body(body)
+        for a, b in force:
+            self.scene.geom(a), self.scene.geom(b)
+        self.display_hints = {"trace": list(trace), "force": [[a, b] for a, b in force]}
 
     # ------------------------------------------------------------------
     # Layout of θ.
@@ -508,4 +525,5 @@ class Task:
             "symbols": [c.name for c in self.contacts],
             "costs": {t.name: t.weight for t in self.costs},
             "priors": {t.name: t.weight for t in self.priors},
+            "display": self.display_hints,
         }
