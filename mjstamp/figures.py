@@ -1,0 +1,745 @@
+"""Figures of a solve (STAMP Fig. 3-6, 9, 10), written by `solve --out DIR`.
+
+    result = solve(task, config)
+    save_figures(result, Path("out"))  # -> plans_histogram.png, plans_topdown.png,
+                                       #    loss.png and, for 2-D θ, landscape.png
+
+Each figure has a `*_figure(result) -> Figure` builder (inspectable in tests
+and notebooks) and is saved through the Agg canvas directly: no pyplot, no
+global backend switch, so importing or calling this module changes nothing for
+a user's own matplotlib session.
+
+`plan_colors` gives each verified task plan one color, in sorted plan order,
+so that the same plan has the same color in figures of runs that found the same
+plans.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import math
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from matplotlib import colormaps, ticker
+from matplotlib import colors as mcolors
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch, Polygon
+from tqdm.auto import tqdm
+
+from mjstamp import plans as plans_mod
+from mjstamp import solve as solve_mod
+from mjstamp.errors import MjstampError
+
+DPI = 150
+FAILED_COLOR = "#b0b0b0"  # particles that are not returned, or fail in MuJoCo C
+# Particle-steps of MJX forward rollouts the landscape grid may cost: at about
+# 5 us per particle-step on a 2-core CPU, 2.4e6 is about 12 s (billiards:
+# 126 x 126 grid, 150 steps).
+LANDSCAPE_BUDGET = 2.4e6
+# Each batch is a call with its own overhead (~1 ms): small n would otherwise
+# cost thousands of calls.
+LANDSCAPE_MAX_BATCHES = 400
+FORCE_FRAMES = 5  # force arrows drawn per geom pair and plan
+# Low cost dark, but not black: particles' black edges must stay visible.
+_COST_CMAP = mcolors.ListedColormap(colormaps["Greys_r"](np.linspace(0.2, 1.0, 256)))
+
+
+def save_figures(
+    result,
+    out: str | Path,
+    *,
+    landscape: bool = True,
+    grid: int | None = None,
+    progress: bool | None = None,
+) -> list[Path]:
+    """Writes the figures of a solve into `out`, each PNG atomically.
+
+    Args:
+      result: a `mjstamp.solve.SolveResult`.
+      out: a writable folder (created if missing).
+      landscape: draw landscape.png when θ is two-dimensional (it costs about
+        `LANDSCAPE_BUDGET` particle-steps of MJX rollouts, ~12 s on a CPU).
+      grid: landscape points per axis; None picks one within the budget.
+      progress: tqdm bar over the landscape grid; None shows it on a terminal.
+
+    Returns:
+      Paths of the files written, in the order plans_histogram.png,
+      plans_topdown.png, loss.png[, landscape.png].
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    figures = [
+        ("plans_histogram.png", lambda: histogram_figure(result)),
+        ("plans_topdown.png", lambda: topdown_figure(result)),
+        ("loss.png", lambda: loss_figure(result)),
+    ]
+    if landscape and result.task.dim == 2:
+        figures.append(
+            ("landscape.png", lambda: landscape_figure(result, grid=grid, progress=progress))
+        )
+    written = []
+    for name, build in figures:
+        target = out / name
+        _save(build(), target)
+        written.append(target)
+    return written
+
+
+def _save(fig: Figure, path: Path) -> None:
+    """Renders with the Agg canvas into memory, then writes the PNG atomically."""
+    FigureCanvasAgg(fig)  # attaches itself as fig.canvas
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=DPI)
+    plans_mod.write_atomic(path, lambda f: f.write(buffer.getvalue()))
+
+
+# ----------------------------------------------------------------------------
+# Who is what: verified task plans and their colors.
+
+
+def particle_plans(result) -> np.ndarray:
+    """(n,) verified task plan of each particle; None where not returned or failed."""
+    ok = result.returned & result.verified.ok
+    return np.array([p if good else None for p, good in zip(result.verified.plan, ok,
+                                                            strict=True)], dtype=object)
+
+
+def plan_colors(result) -> dict[str, tuple]:
+    """{verified task plan: RGBA}, from tab20 in sorted plan order (cycles past 20)."""
+    found = sorted({p for p in particle_plans(result) if p is not None})
+    palette = [mcolors.to_rgba(c) for c in (*_TAB20_STRONG, *_TAB20_LIGHT)]
+    return {p: palette[k % len(palette)] for k, p in enumerate(found)}
+
+
+# tab20 reordered, strong colors first, so a few plans never get two shades of
+# one hue; its grays are left out: gray means "not returned or failed".
+_TAB20_STRONG = [f"C{k}" for k in (0, 1, 2, 3, 4, 5, 6, 8, 9)]
+_TAB20_LIGHT = ["#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5",
+                "#c49c94", "#f7b6d2", "#dbdb8d", "#9edae5"]
+
+
+# ----------------------------------------------------------------------------
+# plans_histogram.png (Fig. 4/5).
+
+
+def histogram_figure(result) -> Figure:
+    """Bars of plans per task plan: verified in MuJoCo C, and failed (STAMP Fig. 4/5).
+
+    Rows come from `result.rows`: a verified plan counts under the task plan of
+    its C replay, a failed one under its MJX-predicted task plan, "(failed)".
+    """
+    task = result.task
+    rows = result.rows
+    n = result.theta.shape[0]
+    width = max(6.0, 0.45 * len(rows) + 2.0)
+    fig = Figure(figsize=(width, 4.5), layout="constrained")
+    ax = fig.add_subplot()
+    verified_total = int(result.verified_mask().sum())
+    ax.set_title(
+        f"{task.name}: verified plans per task plan\n"
+        f"{verified_total} verified of {int(result.returned.sum())} returned, "
+        f"{n} particles, seed {result.config.get('seed', 0)}"
+    )
+    symbols = ", ".join(c.name for c in task.contacts)
+    ax.set_xlabel(
+        f"task plan (bits: {symbols}; then actions and success label)" if symbols
+        else "task plan"
+    )
+    ax.set_ylabel("plans")
+    if not rows:
+        ax.text(0.5, 0.5, "no plans returned", ha="center", va="center",
+                transform=ax.transAxes, fontsize=12)
+        ax.set_xticks([])
+        return fig
+    x = np.arange(len(rows))
+    verified = np.array([r["verified"] for r in rows])
+    failed = np.array([r["plans"] - r["verified"] for r in rows])
+    bars = ax.bar(x, verified, color="C0", label="verified in MuJoCo C")
+    ax.bar_label(bars, labels=[str(v) if v else "" for v in verified], padding=2, fontsize=8)
+    if failed.any():
+        some = failed > 0  # a zero-height bar would still draw its edge
+        bars = ax.bar(x[some], failed[some], bottom=verified[some], color="#f4a6a6",
+                      edgecolor="C3", hatch="//", linewidth=0.5,
+                      label="returned by MJX, failed in MuJoCo C")
+        ax.bar_label(bars, labels=[str(v) for v in failed[some]], padding=2, fontsize=8)
+    ax.set_xticks(x, [r["task_plan"] for r in rows], rotation=45, ha="right",
+                  rotation_mode="anchor", fontsize=8)
+    ax.set_xlim(-0.6, len(rows) - 0.4)
+    ax.set_ylim(0, (verified + failed).max() * 1.15 + 0.5)
+    ax.yaxis.get_major_locator().set_params(integer=True)
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_axisbelow(True)
+    ax.legend(loc="upper right")
+    return fig
+
+
+# ----------------------------------------------------------------------------
+# loss.png (Fig. 10).
+
+
+def loss_figure(result) -> Figure:
+    """Mean and best loss C(θ) = −log ρ(θ) per iteration, SVGD and SGD phases shaded.
+
+    References: STAMP Fig. 10.
+    """
+    d = result.diagnostics
+    mean = -np.asarray(d.logdensity_mean, float)
+    best = -np.asarray(d.logdensity_max, float)
+    phase = np.asarray(d.phase)
+    it = np.arange(1, len(phase) + 1)
+    fig = Figure(figsize=(7, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    ax.set_title(f"{result.task.name}: loss over STAMP iterations "
+                 f"({result.theta.shape[0]} particles)")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss  C(θ) = −log ρ(θ)")
+    if len(it) == 0:
+        ax.text(0.5, 0.5, "no iterations run", ha="center", va="center",
+                transform=ax.transAxes)
+        return fig
+    names = {0: ("SVGD", "#dbe9f6"), 1: ("SGD", "#fde5cc")}
+    # Contiguous runs of one phase (SVGD then SGD; either may be empty).
+    edges = np.flatnonzero(np.diff(phase)) + 1
+    for run in np.split(np.arange(len(phase)), edges):
+        label, color = names.get(int(phase[run[0]]), (f"phase {phase[run[0]]}", "#eeeeee"))
+        lo, hi = it[run[0]] - 0.5, it[run[-1]] + 0.5
+        ax.axvspan(lo, hi, color=color, zorder=0)
+        ax.text((lo + hi) / 2, 0.97, f"{label}\n{len(run)} iterations", ha="center", va="top",
+                transform=ax.get_xaxis_transform(), fontsize=9)
+    ax.plot(it, mean, color="C0", label="mean over particles")
+    ax.plot(it, best, color="C3", label="best particle")
+    finite = np.concatenate([mean[np.isfinite(mean)], best[np.isfinite(best)]])
+    if finite.size and finite.min() > 0:
+        ax.set_yscale("log")
+        # Headroom for the phase labels at the top.
+        ax.set_ylim(finite.min() / 1.5, finite.max() * 3)
+    elif finite.size:
+        span = finite.max() - finite.min() or 1.0
+        ax.set_ylim(finite.min() - 0.05 * span, finite.max() + 0.3 * span)
+    ax.set_xlim(0.5, it[-1] + 0.5)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best")
+    return fig
+
+
+# ----------------------------------------------------------------------------
+# landscape.png (Fig. 9).
+
+
+def landscape_cost(
+    task, n: int, low, high, grid: int, *, progress: bool | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The task's MJX cost C(θ) on a grid × grid lattice over a 2-D box.
+
+    Batches hold `n` particles, the solve's own batch size: one compiled
+    function per task and n, which the trace and compilation caches keep
+    across runs (billiards: ~4 s to trace and compile the first time).
+
+    Args:
+      task: a `Task` with `task.dim == 2`.
+      n: particles per batch.
+      low: (2,) lower corner of the box.
+      high: (2,) upper corner.
+      grid: points per axis.
+      progress: tqdm bar; None shows it on a terminal.
+
+    Returns:
+      xs: (grid,) first coordinate.
+      ys: (grid,) second coordinate.
+      cost: (grid, grid) C at (ys[i], xs[j]) in row i, column j (NaN where the
+        rollout is not finite).
+    """
+    if task.dim != 2:
+        raise MjstampError(f"task {task.name!r}: a landscape needs 2-D θ; it has {task.dim}")
+    xs = np.linspace(low[0], high[0], grid)
+    ys = np.linspace(low[1], high[1], grid)
+    gx, gy = np.meshgrid(xs, ys)
+    points = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    pad = -len(points) % n
+    # Padding repeats the last point: one compiled shape for every batch.
+    points = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)])
+
+    fn = _cost_fn(task, n)
+    show = sys.stderr.isatty() if progress is None else bool(progress)
+    out = []
+    for start in tqdm(range(0, len(points), n), desc=f"landscape {task.name}", unit="batch",
+                      disable=not show):
+        batch = jnp.asarray(points[start : start + n], task.scene.dtype)
+        out.append(np.asarray(jax.device_get(fn(batch)), np.float64))
+    values = np.concatenate(out)[: grid * grid].reshape(grid, grid)
+    return xs, ys, np.where(np.isfinite(values), values, np.nan)
+
+
+@functools.lru_cache(maxsize=8)
+def _cost_fn(task, n: int):
+    """Jitted θ (n, d) -> C(θ) (n,), compiled once per task and batch size."""
+
+    def cost(theta):
+        _, values = task.evaluate(theta)
+        return task.cost_total(values)
+
+    example = jnp.zeros((n, task.dim), task.scene.dtype)
+    # Through solve's jit: registered tasks reuse the trace cache across runs.
+    return solve_mod._jit(cost, task, f"landscape-cost n={n}", example)
+
+
+def default_grid(task, n: int) -> int:
+    """Landscape points per axis within `LANDSCAPE_BUDGET` particle-steps.
+
+    At most `LANDSCAPE_MAX_BATCHES` batches of n particles; billiards (n = 128,
+    150 steps) gets 126 × 126 points in 125 batches, ~9 s on a 2-core CPU plus
+    its compile.
+    """
+    batches = max(1, min(int(LANDSCAPE_BUDGET / (n * task.horizon)), LANDSCAPE_MAX_BATCHES))
+    grid = int(math.isqrt(batches * n))
+    return int(np.clip(grid, 8, 400))
+
+
+def landscape_figure(result, *, grid: int | None = None,
+                     progress: bool | None = None) -> Figure:
+    """Particles over the cost landscape: initial, end of SVGD, end of SGD (Fig. 9).
+
+    Particles are colored by the task plan their final θ verifies in MuJoCo C
+    (gray: not returned, or failed in C), so the left panel shows where each
+    mode's particles started.
+
+    Args:
+      result: a `SolveResult` of a task with 2-D θ.
+      grid: points per axis of the cost grid; None: `default_grid`.
+      progress: tqdm bar over the grid; None shows it on a terminal.
+
+    Returns:
+      The Figure (three panels, a colorbar, a legend of task plans).
+    """
+    task = result.task
+    if task.dim != 2:
+        raise MjstampError(f"task {task.name!r}: a landscape needs 2-D θ; it has {task.dim}")
+    n = result.theta.shape[0]
+    low = np.concatenate([v.low for v in task.variables])
+    high = np.concatenate([v.high for v in task.variables])
+    grid = default_grid(task, n) if grid is None else int(grid)
+    if grid < 2:
+        raise MjstampError(f"landscape grid={grid} must be >= 2")
+    xs, ys, cost = landscape_cost(task, n, low, high, grid, progress=progress)
+
+    plans = particle_plans(result)
+    colors = plan_colors(result)
+    legend_rows = math.ceil((len(colors) + 1) / 6)
+    # Three square panels, their titles and labels, then the legend's rows: a
+    # figure too small for these makes constrained layout overlap the texts.
+    fig = Figure(figsize=(15, 5.7 + 0.25 * legend_rows), layout="constrained")
+    axes = fig.subplots(1, 3, sharex=True, sharey=True)
+    finite = cost[np.isfinite(cost)]
+    positive = finite.size and finite.min() > 0
+    if positive:
+        # Costs span decades (a pocketed shot vs. a miss): log levels show both.
+        levels = np.geomspace(finite.min(), finite.max(), 25)
+        norm = mcolors.LogNorm(levels[0], levels[-1])
+    else:
+        levels = np.linspace(finite.min(), finite.max(), 25) if finite.size else 25
+        norm = None
+    phase = np.asarray(result.diagnostics.phase)
+    iters = (int(np.sum(phase == 0)), int(np.sum(phase == 1)))
+    panels = (
+        ("initial (uniform)", result.initial_theta),
+        (f"end of SVGD ({iters[0]} iterations)", result.svgd_theta),
+        (f"end of SGD ({iters[1]} iterations)", result.theta),
+    )
+    names = _axis_names(task)
+    contour = None
+    for ax, (title, theta) in zip(axes, panels, strict=True):
+        if finite.size:
+            contour = ax.contourf(xs, ys, cost, levels=levels, norm=norm, cmap=_COST_CMAP)
+        _scatter_by_plan(ax, theta, plans, colors)
+        ax.set_title(title)
+        ax.set_xlabel(names[0])
+        ax.set_xlim(low[0], high[0])
+        ax.set_ylim(low[1], high[1])
+        ax.set_aspect("equal" if np.isclose(high[0] - low[0], high[1] - low[1]) else "auto")
+    axes[0].set_ylabel(names[1])
+    if contour is not None:
+        bar = fig.colorbar(contour, ax=axes, shrink=0.8, pad=0.01)
+        bar.set_label("cost C(θ) (MJX rollout; dark = low)")
+        if positive:
+            bar.locator = ticker.LogLocator(subs=(1.0, 2.0, 5.0))
+            bar.formatter = ticker.LogFormatter(labelOnlyBase=False)
+            bar.update_ticks()
+    fig.suptitle(f"{task.name}: particles over the cost landscape ({grid}×{grid} grid), "
+                 "colored by the verified task plan of their final θ")
+    handles = [Line2D([], [], ls="", marker="o", mfc=colors[p], mec="k", mew=0.4,
+                      label=f"{p} ({int(np.sum(plans == p))})") for p in colors]
+    missing = int(np.sum(plans == None))  # noqa: E711 - elementwise on an object array
+    handles.append(Line2D([], [], ls="", marker="o", mfc=FAILED_COLOR, mec="k", mew=0.4,
+                          label=f"not returned / failed ({missing})"))
+    fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 6),
+               fontsize=8, title="verified task plan of the final particle (count)",
+               title_fontsize=8)
+    return fig
+
+
+def _axis_names(task) -> list[str]:
+    """Names of θ's coordinates: 'name[k]' for multi-coordinate variables."""
+    names = []
+    for v in task.variables:
+        names += [v.name] if v.size == 1 else [f"{v.name}[{k}]" for k in range(v.size)]
+    return names
+
+
+def _scatter_by_plan(ax, theta, plans, colors) -> None:
+    theta = np.asarray(theta)
+    failed = np.array([p is None for p in plans])
+    ax.scatter(theta[failed, 0], theta[failed, 1], s=14, c=FAILED_COLOR, edgecolors="k",
+               linewidths=0.3, zorder=3)
+    for p, color in colors.items():
+        mask = plans == p
+        ax.scatter(theta[mask, 0], theta[mask, 1], s=18, color=color, edgecolors="k",
+                   linewidths=0.4, zorder=4)
+
+
+# ----------------------------------------------------------------------------
+# plans_topdown.png (Fig. 3/6).
+
+
+def best_verified(result) -> list[tuple[str, int]]:
+    """(task plan, particle) of the lowest-cost verified plan of each task plan.
+
+    In the order of `result.rows` (most verified plans first).
+    """
+    ok = result.verified_mask()
+    out = []
+    for r in result.rows:
+        good = [i for i in r["particles"] if ok[i]]
+        if good:
+            out.append((r["task_plan"], min(good, key=lambda i: result.cost[i])))
+    return out
+
+
+def topdown_figure(result, *, columns: int = 4) -> Figure:
+    """One top-down panel per verified task plan: its best plan, scene and paths.
+
+    Each panel draws the scene from the MjModel (geom footprints in xy, sites),
+    the moving geoms at the start (faint) and at the end of the C replay, the
+    paths of the bodies in `task.display_hints["trace"]` (default: every body
+    with a joint), and for each geom pair (A, B) in `display_hints["force"]`
+    arrows of the contact force of A on B at a few frames.
+
+    Args:
+      result: a `SolveResult`.
+      columns: panels per row at most.
+
+    Returns:
+      The Figure.
+
+    References: STAMP Fig. 3 (billiards), Fig. 6 (pushing: force arrows).
+    """
+    task = result.task
+    m = task.scene.m
+    chosen = best_verified(result)
+    subtitle = "best-cost verified plan of each task plan"
+    if not chosen:
+        # Still draw the scene and the closest miss: a blank figure helps nobody.
+        i = int(np.nanargmin(np.where(np.isfinite(result.cost), result.cost, np.inf)))
+        chosen = [(f"{result.verified.plan[i]} (failed)", i)]
+        subtitle = "no verified plan; lowest-cost particle shown"
+    trace = [task.scene.body(b) for b in task.display_hints.get("trace", [])]
+    if not trace:
+        trace = [b for b in range(1, m.nbody) if m.body_jntnum[b] > 0]
+    forces = [(task.scene.geom(a), task.scene.geom(b))
+              for a, b in task.display_hints.get("force", [])]
+    drawings = [_plan_drawing(result, i, trace, forces) for _, i in chosen]
+    lo = np.min([d["extent"][0] for d in drawings], axis=0)
+    hi = np.max([d["extent"][1] for d in drawings], axis=0)
+    margin = 0.03 * max(hi - lo)
+    lo, hi = lo - margin, hi + margin
+    # One scale for every force arrow: the largest is 15% of the scene's width.
+    fmax = max([np.max(np.linalg.norm(f[1], axis=1)) for d in drawings for f in d["forces"]
+                if len(f[1])], default=0.0)
+    arrow_scale = 0.15 * max(hi - lo) / fmax if fmax > 0 else 0.0
+
+    cols = min(columns, len(chosen))
+    rows = math.ceil(len(chosen) / cols)
+    aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
+    # Size the figure around data areas of at most 3.1 x 3.4 in, plus per panel
+    # its tick labels and two-line title (~0.75 in each way), the two-line
+    # suptitle and the legend: constrained layout overlaps texts when an
+    # equal-aspect figure is too small for them.
+    width = min(3.1, 3.4 / aspect)
+    legend_cols = min(len(trace) + 3 + len(forces), 6 if cols > 2 else 3)
+    legend_rows = math.ceil((len(trace) + 3 + len(forces)) / legend_cols)
+    fig = Figure(figsize=(max(cols * (width + 0.75) + 0.3, 7.0),
+                          rows * (width * aspect + 0.75) + 0.8 + 0.25 * legend_rows + 0.3),
+                 layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    trace_colors = {b: f"C{k % 10}" for k, b in enumerate(trace)}
+    for k, (ax, (plan, i), drawing) in enumerate(zip(axes, chosen, drawings, strict=False)):
+        _draw_plan(ax, drawing, trace_colors, arrow_scale)
+        ax.set_title(f"{plan}\ncost {result.cost[i]:.3g} (particle {i})", fontsize=9)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+        # Axis labels on the outer panels only: every panel has the same frame.
+        if k + cols >= len(chosen):  # no panel below
+            ax.set_xlabel("x [m]", fontsize=8)
+        if k % cols == 0:
+            ax.set_ylabel("y [m]", fontsize=8)
+    for ax in axes[len(chosen):]:
+        ax.set_axis_off()
+    fig.suptitle(f"{task.name}: {subtitle}\n(top-down view of the MuJoCo C replay)")
+    handles = [Line2D([], [], color=trace_colors[b], lw=1.5,
+                      label=f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b)} path")
+               for b in trace]
+    handles += [
+        Line2D([], [], ls="", marker="o", mfc="white", mec="k", label="start"),
+        Line2D([], [], ls="", marker="X", mfc="k", mec="k", label="end"),
+        Patch(facecolor="none", edgecolor="k", ls="--", alpha=0.5, label="bodies at start"),
+    ]
+    for a, b in forces:
+        name_a = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, a)
+        name_b = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, b)
+        handles.append(Line2D([], [], color="red", lw=2,
+                              label=f"force of {name_a} on {name_b} (longest {fmax:.3g} N)"))
+    fig.legend(handles=handles, loc="outside lower center", ncols=legend_cols, fontsize=8)
+    return fig
+
+
+def _plan_drawing(result, i: int, trace: list[int], forces: list[tuple[int, int]]) -> dict:
+    """Geometry of particle i's C replay: footprints, paths, forces, extent."""
+    task = result.task
+    m = task.scene.m
+    d = mujoco.MjData(m)
+    qpos0, qvel0, _ = task.inputs(task.unpack(result.theta[i : i + 1]), xp=np)
+    replay = result.replay
+    d.qpos[:] = np.asarray(qpos0, np.float64)[0]
+    d.qvel[:] = np.asarray(qvel0, np.float64)[0]
+    mujoco.mj_kinematics(m, d)
+    start = _footprints(m, d)
+    start_xpos = d.xpos.copy()
+    d.qpos[:] = replay.qpos[i, -1]
+    mujoco.mj_kinematics(m, d)
+    end = _footprints(m, d)
+    paths = {b: np.concatenate([start_xpos[b : b + 1, :2], replay.xpos[i, :, b, :2]])
+             for b in trace}
+    arrows = [(pair, *_contact_forces(m, replay, i, pair)) for pair in forces]
+    # Planes (tables, floors) may be far larger than where things happen: they
+    # set the extent only when nothing else does.
+    solids = [g[1] for g in start["geoms"] + end["geoms"] if g[0] != "plane"]
+    pts = solids + [s[0] for s in start["sites"]] + list(paths.values())
+    pts = pts or [g[1] for g in start["geoms"]] or [np.zeros((1, 2))]
+    allpts = np.concatenate(pts)
+    return {
+        "start": start, "end": end, "paths": paths,
+        "forces": [(pair, f, pos) for pair, pos, f in arrows],
+        "extent": (allpts.min(axis=0), allpts.max(axis=0)),
+    }
+
+
+def _contact_forces(m, replay, i: int, pair: tuple[int, int]):
+    """Contact positions (k, 2) and xy forces (k, 2) of geom a on geom b, k frames.
+
+    Frames are `FORCE_FRAMES` evenly spread over the frames with contact.
+    N.B. MuJoCo's contact frame has its normal from geom1 to geom2, and
+    mj_contactForce's force (in that frame) acts on geom2: the force of geom1
+    on geom2 is frameᵀ f, and of geom2 on geom1 its negative.
+    """
+    if replay.qvel is None:  # an MJX replay holds positions only
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    a, b = pair
+    d = mujoco.MjData(m)
+    frames = []
+    for t in range(replay.qpos.shape[1]):
+        d.qpos[:] = replay.qpos[i, t]
+        d.qvel[:] = replay.qvel[i, t]
+        if replay.ctrl is not None and m.nu:
+            d.ctrl[:] = replay.ctrl[i, t]
+        mujoco.mj_forward(m, d)
+        total, where, count = np.zeros(3), np.zeros(3), 0
+        for k in range(d.ncon):
+            c = d.contact[k]
+            sign = 1.0 if (c.geom1, c.geom2) == (a, b) else (
+                -1.0 if (c.geom1, c.geom2) == (b, a) else 0.0)
+            if sign == 0.0:
+                continue
+            f = np.zeros(6)
+            mujoco.mj_contactForce(m, d, k, f)
+            total += sign * c.frame.reshape(3, 3).T @ f[:3]
+            where += c.pos
+            count += 1
+        if count and np.linalg.norm(total[:2]) > 0:
+            frames.append((where[:2] / count, total[:2]))
+    if not frames:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pick = np.unique(np.linspace(0, len(frames) - 1, FORCE_FRAMES).round().astype(int))
+    pos = np.array([frames[k][0] for k in pick])
+    force = np.array([frames[k][1] for k in pick])
+    return pos, force
+
+
+def _draw_plan(ax, drawing: dict, trace_colors: dict, arrow_scale: float) -> None:
+    static = [g for g in drawing["start"]["geoms"] if not g[2]]
+    for kind, poly, _, (rgba, z) in sorted(static, key=lambda g: g[3][1]):
+        if kind == "plane":
+            # Tables and floors are background: paled, so that geoms of the same
+            # color (MuJoCo's default gray for both) stand out on them.
+            face = (*(0.55 * np.asarray(rgba[:3]) + 0.45), rgba[3])
+            ax.add_patch(Polygon(poly, closed=True, facecolor=face, edgecolor="none",
+                                 zorder=0.5))
+        else:
+            ax.add_patch(Polygon(poly, closed=True, facecolor=rgba,
+                                 edgecolor=_darker(rgba), lw=0.5, zorder=1 + 0.01 * z))
+    # Sites on the world where they are; sites on moving bodies where they end.
+    sites = [s for s in drawing["start"]["sites"] if not s[2]]
+    sites += [s for s in drawing["end"]["sites"] if s[2]]
+    for poly, rgba, _ in sites:
+        ax.add_patch(Polygon(poly, closed=True, facecolor=rgba, edgecolor="k", lw=0.5,
+                             ls="--", zorder=1.5))
+    for _kind, poly, moving, (rgba, _) in drawing["start"]["geoms"]:
+        if moving:  # ghost at the start
+            ax.add_patch(Polygon(poly, closed=True, facecolor=(*rgba[:3], 0.25 * rgba[3]),
+                                 edgecolor="k", ls="--", lw=0.6, zorder=2))
+    for b, path in drawing["paths"].items():
+        color = trace_colors[b]
+        ax.plot(path[:, 0], path[:, 1], color=color, lw=1.4, zorder=4)
+        ax.plot(*path[0], ls="", marker="o", mfc="white", mec=color, ms=5, zorder=5)
+        ax.plot(*path[-1], ls="", marker="X", mfc=color, mec="k", mew=0.4, ms=6, zorder=5)
+    for _kind, poly, moving, (rgba, _) in drawing["end"]["geoms"]:
+        if moving:
+            ax.add_patch(Polygon(poly, closed=True, facecolor=rgba, edgecolor="k", lw=0.6,
+                                 zorder=3))
+    for _, force, pos in drawing["forces"]:
+        if len(force) and arrow_scale > 0:
+            ax.quiver(pos[:, 0], pos[:, 1], force[:, 0] * arrow_scale,
+                      force[:, 1] * arrow_scale, angles="xy", scale_units="xy", scale=1,
+                      color="red", width=0.008, zorder=6)
+
+
+def _darker(rgba) -> tuple:
+    return (*(0.6 * np.asarray(rgba[:3])), rgba[3])
+
+
+def _footprints(m, d) -> dict:
+    """Footprints in xy of the visible geoms and sites at the state in `d`.
+
+    Returns:
+      {"geoms": [(kind, (k, 2) polygon, moving, (rgba, top z))],
+       "sites": [((k, 2) polygon, rgba, moving)]}; kind is "plane" for planes (drawn
+      as their finite extent, under everything), else "solid".
+    """
+    geoms = []
+    for g in range(m.ngeom):
+        rgba = m.mat_rgba[m.geom_matid[g]] if m.geom_matid[g] >= 0 else m.geom_rgba[g]
+        # MuJoCo's viewer hides geom groups >= 3 by default; so do we.
+        if rgba[3] == 0 or m.geom_group[g] >= 3:
+            continue
+        world = _world_points(m, int(m.geom_type[g]), m.geom_size[g], d.geom_xpos[g],
+                              d.geom_xmat[g], g)
+        if world is None:
+            continue
+        kind = "plane" if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE else "solid"
+        moving = m.body_weldid[m.geom_bodyid[g]] != 0
+        geoms.append((kind, _hull(world[:, :2]), bool(moving),
+                      (tuple(rgba), float(world[:, 2].max()))))
+    sites = []
+    for s in range(m.nsite):
+        rgba = m.site_rgba[s]
+        if rgba[3] == 0 or m.site_group[s] >= 3:
+            continue
+        world = _world_points(m, int(m.site_type[s]), m.site_size[s], d.site_xpos[s],
+                              d.site_xmat[s], None)
+        if world is None:
+            continue
+        # Sites mark regions (pockets, goals): translucent so what lies under shows.
+        moving = m.body_weldid[m.site_bodyid[s]] != 0
+        sites.append((_hull(world[:, :2]), (*rgba[:3], min(rgba[3], 0.6)), bool(moving)))
+    return {"geoms": geoms, "sites": sites}
+
+
+def _world_points(m, kind: int, size, pos, xmat, geom: int | None) -> np.ndarray | None:
+    """(k, 3) world points whose xy convex hull is the object's top-down footprint.
+
+    Args:
+      m: the MjModel (meshes and height fields).
+      kind: an mjtGeom type.
+      size: (3,) geom or site size.
+      pos: (3,) world position.
+      xmat: (9,) world orientation, row-major.
+      geom: geom id (meshes and height fields), None for sites.
+    """
+    t = mujoco.mjtGeom
+    rot = np.asarray(xmat).reshape(3, 3)
+    phi = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    ring = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
+    if kind in (t.mjGEOM_SPHERE, t.mjGEOM_CAPSULE):
+        # A ball's shadow is a disc whatever its orientation: ring in world xy
+        # around each end of the segment (a sphere's segment has length 0).
+        half = size[1] if kind == t.mjGEOM_CAPSULE else 0.0
+        ends = pos + np.outer([-half, half], rot[:, 2])
+        return np.concatenate([end + size[0] * ring for end in ends])
+    local = None
+    if kind == t.mjGEOM_CYLINDER:
+        r, h = size[0], size[1]
+        local = np.concatenate([r * ring + [0, 0, h], r * ring - [0, 0, h]])
+    elif kind == t.mjGEOM_ELLIPSOID:
+        u, v = np.meshgrid(np.linspace(0, np.pi, 13), phi)
+        pts = np.stack([np.sin(u) * np.cos(v), np.sin(u) * np.sin(v), np.cos(u)], -1)
+        local = pts.reshape(-1, 3) * np.asarray(size[:3])
+    elif kind == t.mjGEOM_BOX:
+        corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        local = corners * np.asarray(size[:3])
+    elif kind == t.mjGEOM_PLANE:
+        if size[0] <= 0 or size[1] <= 0:
+            return None  # infinite plane: no extent to draw
+        local = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * [*size[:2], 0]
+    elif kind == t.mjGEOM_MESH and geom is not None:
+        mesh = m.geom_dataid[geom]
+        start, count = m.mesh_vertadr[mesh], m.mesh_vertnum[mesh]
+        verts = np.asarray(m.mesh_vert[start : start + count], float)
+        local = verts[:: max(1, len(verts) // 2000)]  # the hull needs no more
+    elif kind == t.mjGEOM_HFIELD and geom is not None:
+        sx, sy = m.hfield_size[m.geom_dataid[geom]][:2]
+        local = np.array([[-sx, -sy, 0], [sx, -sy, 0], [sx, sy, 0], [-sx, sy, 0]])
+    if local is None:
+        return None
+    return pos + local @ rot.T
+
+
+def _hull(points: np.ndarray) -> np.ndarray:
+    """Convex hull (k, 2) of 2-D points, counter-clockwise (Andrew's monotone chain)."""
+    pts = np.unique(np.round(points, 12), axis=0)
+    if len(pts) <= 2:
+        return pts
+
+    def half(seq):
+        out: list = []
+        for p in seq:
+            while len(out) >= 2:
+                (ax, ay), (bx, by) = out[-1] - out[-2], p - out[-2]
+                if ax * by - ay * bx > 0:
+                    break
+                out.pop()
+            out.append(p)
+        return out[:-1]
+
+    return np.array(half(pts) + half(pts[::-1]))
+
+
+__all__: list[str] = [
+    "best_verified",
+    "default_grid",
+    "histogram_figure",
+    "landscape_cost",
+    "landscape_figure",
+    "loss_figure",
+    "particle_plans",
+    "plan_colors",
+    "save_figures",
+    "topdown_figure",
+]

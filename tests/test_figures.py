@@ -1,0 +1,247 @@
+"""Figures of a solve (mjstamp.figures): files, readability, and what they draw."""
+
+import dataclasses
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from matplotlib.collections import PathCollection
+from matplotlib.image import imread
+
+from mjstamp import figures, plans
+from mjstamp.errors import MjstampError
+from mjstamp.scenes import Scene
+from mjstamp.solve import solve
+from mjstamp.tasks import Task, costs
+
+# A puck on a plane table with a wall and a goal site (as in test_tasks), small
+# enough that a whole solve compiles and runs in seconds.
+TINY = """
+<mujoco model="tiny">
+  <option timestep="0.02" gravity="0 0 0"/>
+  <default><geom condim="1" solref="-5000 -5"/></default>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.1" pos="0 0 -0.05" contype="0" conaffinity="0"/>
+    <geom name="wall" type="box" pos="0.5 0 0" size="0.05 1 0.05" euler="0 0 10"/>
+    <site name="goal" pos="-0.3 0.3 0" size="0.1" rgba="0 0.8 0 1"/>
+    <body name="puck">
+      <joint name="px" type="slide" axis="1 0 0" damping="0.05"/>
+      <joint name="py" type="slide" axis="0 1 0" damping="0.05"/>
+      <geom name="puck" type="sphere" size="0.04" mass="0.2"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+CONFIG = {
+    "particles": 8,
+    "svgd_learning_rate": 0.1,
+    "sgd_learning_rate": 0.05,
+    "svgd_max_iters": 4,
+    "sgd_max_iters": 4,
+    "min_iters": 2,
+}
+
+
+def tiny_task():
+    task = Task("tiny", Scene(TINY, name="tiny"), horizon=30)
+    task.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
+    task.contact("wall", "puck", "wall")
+    task.cost("goal", costs.reach("puck", ["goal"]), weight=50.0)
+    # Generous radius: with 8 particles and 8 iterations some plans must verify.
+    task.success(costs.reaches("puck", {"goal": "goal"}, radius=0.6))
+    task.display(trace=["puck"], force=[("puck", "wall")])
+    return task
+
+
+@pytest.fixture(scope="module")
+def result():
+    """A whole solve of the tiny task (about 15 s with a warm compilation cache)."""
+    return solve(tiny_task(), CONFIG, seed=0, progress=False)
+
+
+def _is_readable(fig):
+    """Every axes that draws data has a title and x/y labels."""
+    drawn = [ax for ax in fig.axes if ax.get_label() != "<colorbar>" and ax.axison]
+    assert drawn
+    for ax in drawn:
+        assert ax.get_title(), ax
+    return drawn
+
+
+@pytest.mark.slow
+def test_save_figures_writes_valid_non_blank_pngs(result, tmp_path):
+    written = figures.save_figures(result, tmp_path, grid=12, progress=False)
+    names = [p.name for p in written]
+    assert names == ["plans_histogram.png", "plans_topdown.png", "loss.png", "landscape.png"]
+    for path in written:
+        assert path.is_file()
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        image = imread(path)
+        height, width = image.shape[:2]
+        assert 500 <= width <= 4000 and 300 <= height <= 3000, (path.name, image.shape)
+        # Not blank: a figure of text, lines and patches varies well beyond 1e-3.
+        assert image[..., :3].std() > 0.05, path.name
+    # Atomic writes leave no temporary siblings behind.
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names)
+
+
+@pytest.mark.slow
+def test_no_landscape_when_not_asked(result, tmp_path):
+    written = figures.save_figures(result, tmp_path, landscape=False)
+    assert "landscape.png" not in [p.name for p in written]
+
+
+@pytest.mark.slow
+def test_histogram_counts_verified_and_failed(result):
+    fig = figures.histogram_figure(result)
+    (ax,) = _is_readable(fig)
+    assert "task plan" in ax.get_xlabel() and "wall" in ax.get_xlabel()
+    assert ax.get_ylabel() == "plans"
+    assert ax.get_legend() is not None
+    labels = [t.get_text() for t in ax.get_xticklabels()]
+    assert labels == [r["task_plan"] for r in result.rows]
+    heights = [p.get_height() for p in ax.containers[0]]
+    assert heights == [r["verified"] for r in result.rows]
+    assert sum(heights) == result.verified_mask().sum() > 0
+
+
+@pytest.mark.slow
+def test_loss_figure_shows_both_phases(result):
+    fig = figures.loss_figure(result)
+    (ax,) = _is_readable(fig)
+    assert ax.get_xlabel() == "iteration" and "loss" in ax.get_ylabel()
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert legend == ["mean over particles", "best particle"]
+    mean = ax.get_lines()[0].get_ydata()
+    np.testing.assert_allclose(mean, -result.diagnostics.logdensity_mean)
+    texts = " ".join(t.get_text() for t in ax.texts)
+    assert "SVGD" in texts and "SGD" in texts
+
+
+@pytest.mark.slow
+def test_topdown_one_panel_per_verified_task_plan(result):
+    fig = figures.topdown_figure(result)
+    panels = _is_readable(fig)
+    chosen = figures.best_verified(result)
+    assert len(panels) == len(chosen) > 0
+    for ax, (plan, i) in zip(panels, chosen, strict=True):
+        assert ax.get_title().startswith(plan)
+        assert result.verified_mask()[i]
+        # Scene patches (floor, wall, goal site, puck at start and end) and the path.
+        assert len(ax.patches) >= 5
+        path = ax.get_lines()[0].get_xydata()
+        np.testing.assert_allclose(path[1:], result.replay.body_pos("puck")[i, :, :2])
+    assert any(ax.get_xlabel() == "x [m]" for ax in panels)
+    assert panels[0].get_ylabel() == "y [m]"
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "puck path" in legend and any("force of puck on wall" in t for t in legend)
+    # The best plan of each task plan has the lowest cost among its verified plans.
+    for plan, i in chosen:
+        same = [j for j in np.flatnonzero(result.verified_mask())
+                if result.verified.plan[j] == plan]
+        assert result.cost[i] == min(result.cost[j] for j in same)
+
+
+@pytest.mark.slow
+def test_landscape_panels_and_colors(result):
+    fig = figures.landscape_figure(result, grid=12, progress=False)
+    panels = _is_readable(fig)
+    assert [ax.get_title().split(" (")[0] for ax in panels] == [
+        "initial", "end of SVGD", "end of SGD"]
+    assert panels[0].get_xlabel() == "v[0]" and panels[0].get_ylabel() == "v[1]"
+    colorbar = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(colorbar) == 1 and "cost" in colorbar[0].get_ylabel()
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    plans_found = sorted(set(result.verified.plan[result.verified_mask()]))
+    assert legend[:-1] == [f"{p} ({np.sum(figures.particle_plans(result) == p)})"
+                           for p in plans_found]
+    assert legend[-1].startswith("not returned / failed")
+    # Every particle is drawn once per panel, at its θ of that stage.
+    for ax, theta in zip(panels, (result.initial_theta, result.svgd_theta, result.theta),
+                         strict=True):
+        drawn = np.concatenate([c.get_offsets() for c in ax.collections
+                                if isinstance(c, PathCollection)])
+        assert len(drawn) == len(theta)
+        np.testing.assert_allclose(np.sort(drawn[:, 0]), np.sort(theta[:, 0]))
+
+
+@pytest.mark.slow
+def test_a_solve_with_nothing_returned_still_draws(result, tmp_path):
+    """No returned plan: a histogram saying so, the closest miss, all particles gray."""
+    n = result.theta.shape[0]
+    empty = dataclasses.replace(result, returned=np.zeros(n, bool), rows=[])
+    (ax,) = _is_readable(figures.histogram_figure(empty))
+    assert "no plans returned" in [t.get_text() for t in ax.texts]
+    fig = figures.topdown_figure(empty)
+    (panel,) = _is_readable(fig)
+    assert "failed" in panel.get_title() and "no verified plan" in fig.get_suptitle()
+    fig = figures.landscape_figure(empty, grid=4, progress=False)
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert legend == [f"not returned / failed ({n})"]
+    assert len(figures.save_figures(empty, tmp_path, grid=4, progress=False)) == 4
+
+
+@pytest.mark.slow
+def test_landscape_cost_equals_the_task_cost(result):
+    """The grid is the MJX cost at its points, whatever the batch padding."""
+    import jax.numpy as jnp
+
+    task = result.task
+    xs, ys, cost = figures.landscape_cost(task, 8, [-2, -1], [2, 1], 5, progress=False)
+    assert cost.shape == (5, 5)
+    theta = np.array([[xs[3], ys[1]], [xs[0], ys[4]]])
+    _, values = task.evaluate(jnp.asarray(theta))
+    np.testing.assert_allclose([cost[1, 3], cost[4, 0]], task.cost_total(values), rtol=1e-9)
+    with pytest.raises(MjstampError, match="grid=1 must be >= 2"):
+        figures.landscape_figure(result, grid=1)
+
+
+@pytest.mark.slow
+def test_contact_force_points_from_a_into_b(result):
+    """A puck shot at the wall (+x) pushes it along +x; the wall pushes back."""
+    task = result.task
+    m = task.scene.m
+    replay = plans.simulate_c(task, np.array([[2.0, 0.0]]))
+    puck, wall = task.scene.geom("puck"), task.scene.geom("wall")
+    pos, force = figures._contact_forces(m, replay, 0, (puck, wall))
+    assert 0 < len(pos) <= figures.FORCE_FRAMES
+    # The wall is turned 10° about z: its normal is (cos 10°, sin 10°).
+    normal = np.array([np.cos(np.radians(10)), np.sin(np.radians(10))])
+    np.testing.assert_allclose(force / np.linalg.norm(force, axis=1, keepdims=True),
+                               np.tile(normal, (len(force), 1)), atol=1e-6)
+    assert np.all(np.abs(pos[:, 0] - 0.45) < 0.05)  # on the wall's near face
+    _, back = figures._contact_forces(m, replay, 0, (wall, puck))
+    np.testing.assert_allclose(back, -force)
+
+
+def test_footprints_of_rotated_boxes_and_balls():
+    """A box turned 10° about z has its corners where they should be; balls are discs."""
+    import mujoco
+
+    m = Scene(TINY, name="tiny").m
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    shapes = {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, k): k for k in range(m.ngeom)}
+    drawn = figures._footprints(m, d)
+    wall = drawn["geoms"][shapes["wall"]][1]
+    c, s = np.cos(np.radians(10)), np.sin(np.radians(10))
+    corner = np.array([0.5, 0.0]) + np.array([[c, -s], [s, c]]) @ [0.05, 1.0]
+    assert len(wall) == 4 and np.min(np.linalg.norm(wall - corner, axis=1)) < 1e-9
+    puck = drawn["geoms"][shapes["puck"]][1]
+    np.testing.assert_allclose(np.linalg.norm(puck, axis=1), 0.04)
+    floor = drawn["geoms"][shapes["floor"]]
+    assert floor[0] == "plane" and np.allclose(np.abs(floor[1]), 1.0)
+    ((goal, _, moving),) = drawn["sites"]
+    assert not moving
+    np.testing.assert_allclose(np.linalg.norm(goal - [-0.3, 0.3], axis=1), 0.1)
+
+
+def test_import_leaves_matplotlib_global_state_alone():
+    """No pyplot and no backend switch at import: figures render through Agg directly."""
+    code = ("import sys, matplotlib; before = matplotlib.rcParams._get_backend_or_none(); "
+            "import mjstamp.figures; "
+            "assert 'matplotlib.pyplot' not in sys.modules; "
+            "assert matplotlib.rcParams._get_backend_or_none() == before")
+    subprocess.run([sys.executable, "-c", code], check=True)
