@@ -162,6 +162,39 @@ def _cmd_solve(args) -> int:
     return 0
 
 
+def _cmd_view(args) -> int:
+    import signal
+    import time
+
+    from mjstamp import viz
+
+    if args.port is not None and not 0 < args.port < 65536:
+        raise MjstampError(f"--port={args.port} must be in 1..65535")
+    choice = dict(plan=args.plan, task_plan=args.task_plan, task=args.task)
+    if args.html:
+        playback = viz.write_html(args.dir, args.html, **choice)
+        print(f"wrote {playback.html} ({len(playback.segments)} plans)", file=sys.stderr)
+        return 0
+    # ServerUnavailable is an MjstampError: main prints its one line (where the
+    # fallback page went) and exits with status 2.
+    playback = viz.play(args.dir, port=args.port, open_browser=not args.no_browser, **choice)
+    print(f"meshcat viewer: {playback.url} (Ctrl-C to stop)", flush=True)
+    for segment in playback.segments:
+        print(f"  {segment.label()}", flush=True)
+
+    def stop(signum, frame):  # SIGTERM ends the viewer like Ctrl-C, server included
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        playback.close()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for tests and docs)."""
     parser = argparse.ArgumentParser(
@@ -198,6 +231,26 @@ def build_parser() -> argparse.ArgumentParser:
                        help="skip the ground-truth sweep behind the coverage figure")
     solve.add_argument("--quiet", action="store_true", help="no progress bars")
     solve.set_defaults(func=_cmd_solve)
+
+    view = sub.add_parser(
+        "view", help="play the plans of a results directory in meshcat (live or HTML)"
+    )
+    view.add_argument("dir", help="results directory written by `mjstamp solve --out`")
+    which = view.add_mutually_exclusive_group()
+    which.add_argument("--plan", type=int, action="append", metavar="N",
+                       help="play the returned plan of particle N (repeatable); "
+                       "default: the best verified plan of each task plan")
+    which.add_argument("--task-plan", metavar="NAME",
+                       help="play every verified plan of this task plan (e.g. 0110-top)")
+    view.add_argument("--task", metavar="NAME",
+                      help="check that DIR holds plans of this task")
+    view.add_argument("--html", metavar="OUT.html",
+                      help="write a standalone page that plays offline, instead of a server")
+    view.add_argument("--port", type=int, default=None,
+                      help="web port of the meshcat server (default: first free from 7000)")
+    view.add_argument("--no-browser", action="store_true",
+                      help="do not open the viewer in a browser")
+    view.set_defaults(func=_cmd_view)
 
     tasks = sub.add_parser("tasks", help="list the registered tasks")
     tasks.add_argument("--json", action="store_true")

@@ -1,0 +1,177 @@
+"""A results directory, opened for playback, and the choice of which plans to play."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from mjstamp import plans as plans_io
+from mjstamp.errors import MjstampError, valid_list
+
+
+@dataclasses.dataclass(frozen=True)
+class Results:
+    """What `mjstamp solve --out DIR` wrote, as playback needs it.
+
+    Attributes:
+      path: the directory.
+      summary: contents of plans.json.
+      model: the compiled scene (scene.mjb).
+      trajectories: arrays of trajectories.npz: particle (r,), qpos0 (r, nq),
+        qvel0 (r, nv), qpos (r, T, nq), qvel (r, T, nv), ctrl (r, T, nu), ...
+    """
+
+    path: Path
+    summary: dict
+    model: mujoco.MjModel
+    trajectories: dict[str, np.ndarray]
+
+    @property
+    def task(self) -> str:
+        """Name of the task that wrote the directory."""
+        return str(self.summary.get("task", "?"))
+
+    @property
+    def display(self) -> dict:
+        """Drawing hints of the task: {"trace": [body], "force": [[geom_a, geom_b]]}."""
+        hints = self.summary.get("declaration", {}).get("display") or {}
+        return {"trace": list(hints.get("trace", [])), "force": list(hints.get("force", []))}
+
+    @property
+    def timestep(self) -> float:
+        """Seconds between two saved states."""
+        if "timestep" in self.trajectories:
+            return float(self.trajectories["timestep"])
+        return float(self.model.opt.timestep)
+
+    def row(self, particle: int) -> int:
+        """Index in trajectories.npz of a returned particle's plan."""
+        rows = np.flatnonzero(self.trajectories["particle"] == particle)
+        if len(rows) == 0:
+            raise MjstampError(
+                f"{str(self.path)!r}: particle {particle} has no saved trajectory; valid: "
+                + valid_list(self.trajectories["particle"].tolist())
+            )
+        return int(rows[0])
+
+
+def load_results(path: str | os.PathLike, *, task: str | None = None) -> Results:
+    """Opens a results directory for playback, checking it is complete and current.
+
+    Args:
+      path: directory written by `mjstamp solve TASK --out DIR`.
+      task: if given, the task the directory must belong to.
+
+    Raises:
+      MjstampError: the directory does not exist, is from an older schema,
+        belongs to another task, misses a file, or its files disagree.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise MjstampError(f"results directory {str(path)!r} does not exist")
+    if not path.is_dir():
+        raise MjstampError(f"{str(path)!r} is not a directory (expected a results directory)")
+    plans_json = path / "plans.json"
+    if not plans_json.is_file():
+        raise MjstampError(f"{str(path)!r} holds no plans.json (not a results directory)")
+    try:
+        header = json.loads(plans_json.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise MjstampError(f"{str(plans_json)!r} is not valid JSON: {e}") from None
+    version = header.get("schema_version") if isinstance(header, dict) else None
+    if version != plans_io.SCHEMA_VERSION:
+        rerun = f"mjstamp solve {header.get('task', 'TASK')} --out {path}" if isinstance(
+            header, dict) else "mjstamp solve TASK --out DIR"
+        raise MjstampError(
+            f"{str(plans_json)!r} has schema_version {version!r}; playback needs "
+            f"{plans_io.SCHEMA_VERSION} (re-run `{rerun}`)"
+        )
+    if task is not None and header.get("task") != task:
+        raise MjstampError(
+            f"{str(path)!r} holds plans of task {header.get('task')!r}, not {task!r}"
+        )
+    summary, arrays = plans_io.load(path)
+    if "trajectories" not in arrays:
+        raise MjstampError(f"{str(path)!r} holds no trajectories.npz (not a results directory)")
+    traj = arrays["trajectories"]
+    missing = [k for k in ("particle", "qpos0", "qpos") if k not in traj]
+    if missing:
+        raise MjstampError(
+            f"{str(path / 'trajectories.npz')!r} lacks {valid_list(missing)}"
+        )
+    m = plans_io.load_model(path)
+    if traj["qpos"].ndim != 3 or traj["qpos"].shape[-1] != m.nq:
+        raise MjstampError(
+            f"{str(path / 'trajectories.npz')!r} has qpos of shape {traj['qpos'].shape} but "
+            f"scene.mjb has nq={m.nq} (files from different runs?)"
+        )
+    return Results(path=path, summary=summary, model=m, trajectories=traj)
+
+
+def select_plans(
+    results: Results,
+    *,
+    plan: int | list[int] | None = None,
+    task_plan: str | None = None,
+) -> list[dict]:
+    """Plans to play, as entries of plans.json's "plans" (particle, task_plan, ...).
+
+    By default one plan per mode: for every task plan with verified plans, in
+    the order of the result table, its verified plan of least cost.
+
+    Args:
+      results: the opened directory.
+      plan: particle index (or indices) of returned plans to play, in order.
+      task_plan: play every verified plan of this task plan (failed ones for a
+        "... (failed)" row), least cost first.
+
+    Raises:
+      MjstampError: both or an unknown `plan` / `task_plan` given, or nothing to play.
+    """
+    entries = list(results.summary.get("plans", []))
+    by_particle = {int(e["particle"]): e for e in entries}
+    if plan is not None and task_plan is not None:
+        raise MjstampError("give a plan or a task plan to play, not both")
+    if plan is not None:
+        wanted = [plan] if isinstance(plan, int | np.integer) else list(plan)
+        out = []
+        for p in wanted:
+            if int(p) not in by_particle:
+                raise MjstampError(
+                    f"plan {p} is not among the returned plans of {str(results.path)!r}; "
+                    f"valid: {valid_list(sorted(by_particle))}"
+                )
+            out.append(by_particle[int(p)])
+        return out
+    rows = [r["task_plan"] for r in results.summary.get("task_plans", [])]
+    if task_plan is not None:
+        failed = task_plan.endswith(" (failed)")
+        name = task_plan.removesuffix(" (failed)")
+        out = [
+            e for e in entries
+            if (not failed and e["verified"] and e["task_plan"] == name)
+            or (failed and not e["verified"] and e.get("predicted_task_plan") == name)
+        ]
+        if not out:
+            raise MjstampError(
+                f"task plan {task_plan!r} has no plans in {str(results.path)!r}; valid: "
+                f"{valid_list(rows)}"
+            )
+        return sorted(out, key=lambda e: e["cost"])
+    best: dict[str, dict] = {}
+    for e in entries:
+        if e["verified"] and (e["task_plan"] not in best
+                              or e["cost"] < best[e["task_plan"]]["cost"]):
+            best[e["task_plan"]] = e
+    order = [r for r in rows if r in best] + sorted(set(best) - set(rows))
+    if not order:
+        raise MjstampError(
+            f"{str(results.path)!r} holds no verified plans; choose returned ones with "
+            f"--plan (valid: {valid_list(sorted(by_particle))})"
+        )
+    return [best[r] for r in order]
