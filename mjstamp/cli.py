@@ -131,10 +131,16 @@ def _print_table(summary: dict) -> None:
 
 
 def _cmd_solve(args) -> int:
-    from mjstamp import modes, plans, tasks
+    from mjstamp import figures, modes, plans, tasks
     from mjstamp.solve import solve
 
     overrides = _parse_settings(args.task, args.set or [])
+    if args.max_pushes is not None:
+        if "max_pushes" not in tasks.default_config(args.task):
+            raise MjstampError(f"--max-pushes: task {args.task!r} has no pushes")
+        if args.max_pushes < 1:
+            raise MjstampError(f"--max-pushes={args.max_pushes} must be >= 1")
+        overrides["max_pushes"] = args.max_pushes
     if args.particles is not None:
         if args.particles < 2:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
@@ -152,6 +158,7 @@ def _cmd_solve(args) -> int:
     summary = result.summary(coverage)
     if out is not None:
         written = plans.save(out, summary, result.arrays(), model=task.scene.m)
+        written += figures.save_figures(result, out, progress=progress)
         if not args.json:
             print(f"wrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     if args.json:
@@ -195,6 +202,28 @@ def _cmd_view(args) -> int:
         playback.close()
 
 
+def _cmd_skills(args) -> int:
+    from mjstamp.scenes import Scene
+    from mjstamp.skills import bank as bank_mod
+    from mjstamp.skills import pushing
+
+    out = Path(args.out) if args.out else pushing.DEFAULT_BANK
+    scene = Scene.shipped("pushing")
+    setup = pushing.PushSetup.from_scene(scene)
+    say = (lambda msg: print(f"[skills] {msg}", file=sys.stderr)) if not args.quiet else None
+    bank = pushing.fit_bank(scene, setup, progress=say)
+    path = bank_mod.save(bank, out)
+    errors = pushing.fit_errors(scene, setup, bank)
+    if args.json:
+        print(json.dumps({"path": str(path), "fingerprint": bank.fingerprint, "errors": errors}))
+        return 0
+    print(f"wrote {path} ({len(bank.skills)} skills, fingerprint {bank.fingerprint})")
+    for name, e in errors.items():
+        print(f"{name:<16} reproduces its demonstrations to {e['rms_rel']:.2%} RMS of their "
+              f"extent; end error {e['end_rel']:.2%}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for tests and docs)."""
     parser = argparse.ArgumentParser(
@@ -223,6 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("task", help="registered task name (see `mjstamp tasks`)")
     solve.add_argument("--particles", type=int, default=None, help="particles (plans) to move")
     solve.add_argument("--seed", type=int, default=0)
+    solve.add_argument("--max-pushes", type=int, metavar="K",
+                       help="pushing: plan up to K pushes (same as --set max_pushes=K)")
     solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here")
     solve.add_argument("--json", action="store_true", help="print one JSON object")
     solve.add_argument("--set", action="append", metavar="KEY=VALUE",
@@ -251,6 +282,15 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--no-browser", action="store_true",
                       help="do not open the viewer in a browser")
     view.set_defaults(func=_cmd_view)
+
+    skills = sub.add_parser(
+        "skills", help="record the pushing demonstrations and fit the DMP skill bank"
+    )
+    skills.add_argument("--out", metavar="FILE",
+                        help="bank file to write (default: the cache the pushing task reads)")
+    skills.add_argument("--json", action="store_true")
+    skills.add_argument("--quiet", action="store_true")
+    skills.set_defaults(func=_cmd_skills)
 
     tasks = sub.add_parser("tasks", help="list the registered tasks")
     tasks.add_argument("--json", action="store_true")

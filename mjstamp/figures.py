@@ -283,7 +283,7 @@ def _cost_fn(task, n: int):
     """Jitted θ (n, d) -> C(θ) (n,), compiled once per task and batch size."""
 
     def cost(theta):
-        _, values = task.evaluate(theta)
+        _, values = task.evaluate(theta, hard=True)  # as result.cost: actions at Γ(θ)
         return task.cost_total(values)
 
     example = jnp.zeros((n, task.dim), task.scene.dtype)

@@ -114,7 +114,10 @@ def _poses_and_contacts(task, qpos: np.ndarray, chunk: int = 65536):
 
 
 def simulate_c(task, theta: np.ndarray) -> Replay:
-    """Replays particles θ (n, d) in MuJoCo C with the scene's own solver settings."""
+    """Replays particles θ (n, d) in MuJoCo C with the scene's own solver settings.
+
+    Discrete actions are taken at Γ(θ): the plan as decoded, not its relaxation.
+    """
     theta = np.asarray(theta, np.float64)
     qpos0, qvel0, ctrl = task.inputs(task.unpack(theta), xp=np)
     ctrl = np.asarray(ctrl, np.float64)
@@ -126,7 +129,7 @@ def simulate_mjx(task, theta) -> Replay:
     """Rolls particles θ (n, d) out in MJX (the planner's own, gradient-safe model)."""
     params = task.unpack(jnp.asarray(theta, task.scene.dtype))
     rollout = task.scene.rollout_fn(task.horizon, fields=("qpos",))
-    qpos = rollout(*task.inputs(params))["qpos"]
+    qpos = rollout(*task.inputs(params, hard=True))["qpos"]
     return Replay(task, np.asarray(qpos), source="mjx")
 
 
@@ -171,6 +174,8 @@ def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:
         choice = np.asarray(params[v.name]).reshape(n, v.phases, m).argmax(axis=-1)
         for i in range(n):
             actions[i] += [v.options[j] for j in choice[i]]
+    if task.actions_fn is not None:
+        actions = [list(a) for a in task.actions_fn(replay, actions)]
     if task.success_fn is not None:
         ok, label = task.success_fn(replay)
         ok = np.asarray(ok, bool)

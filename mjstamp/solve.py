@@ -165,9 +165,19 @@ def solve(task, config: dict, *, seed: int = 0, progress: bool | None = None) ->
     stamp_config = svgd.StampConfig(
         seed=seed, **{k: config[k] for k in STAMP_KEYS if k in config}
     )
+    discrete = {}
+    if task.has_actions:
+        # Discrete SVGD (eq. 4): the surrogate ρ relaxes actions with Γ̃, the target
+        # p(Γ(θ)) and the SGD refinement take them at Γ. Γ has no gradient, so SGD
+        # leaves the logits alone: App. E fixes them during SGD the same way.
+        discrete = {
+            "log_target_fn": lambda th: task.log_posterior(th, hard=True)[0],
+            "sgd_logdensity_fn": lambda th: task.log_posterior(th, hard=True),
+        }
     result = svgd.run_stamp(
         task.log_posterior, theta0, task.kernel(), stamp_config, progress=progress,
         jit=lambda step, state, key, phase: _jit(step, task, f"stamp-{phase}", state, key),
+        **discrete,
     )
     jax.block_until_ready(result.particles)
     t_stamp = time.perf_counter()
@@ -177,7 +187,7 @@ def solve(task, config: dict, *, seed: int = 0, progress: bool | None = None) ->
 
     def final(th):
         """Cost and MJX trajectory of the final particles, from one rollout."""
-        r, values = task.evaluate(th)
+        r, values = task.evaluate(th, hard=True)
         return task.cost_total(values), r.traj["qpos"]
 
     final = _jit(final, task, "final", theta_j)

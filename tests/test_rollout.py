@@ -44,8 +44,12 @@ def test_pushing_rollout_with_controls_matches_mujoco_c(pushing):
     n, T = 4, 80
     qpos0, qvel0 = pushing.initial_state()
     qpos0, qvel0 = np.tile(qpos0, (n, 1)), np.tile(qvel0, (n, 1))
-    ctrl = np.repeat(rng.uniform(-6, 6, (n, 4, 2)), T // 4, axis=1)
-    ctrl[:, :, 0] = np.abs(ctrl[:, :, 0])  # towards the block: contact happens
+    # Servo set-points (x, y, z, vx, vy, vz): the pusher starts 0.15 m west of the
+    # block and is sent east at table height, so contact happens.
+    ctrl = np.zeros((n, 4, 6))
+    ctrl[:, :, 0] = rng.uniform(0.1, 0.35, (n, 4))
+    ctrl[:, :, 1] = rng.uniform(-0.05, 0.05, (n, 4))
+    ctrl = np.repeat(ctrl, T // 4, axis=1)
     out = pushing.rollout_fn(T, fields=("qpos", "qvel"))(qpos0, qvel0, ctrl)
     ref = replay(pushing, qpos0, qvel0, ctrl, solver="grad")
     for f in ("qpos", "qvel"):
@@ -93,5 +97,5 @@ def test_rollout_rejects_bad_shapes(billiards):
 
 def test_controls_required_where_the_scene_has_actuators(pushing):
     qpos0, qvel0 = pushing.initial_state()
-    with pytest.raises(MjstampError, match=r"ctrl is missing.*\(1, 10, 2\)"):
+    with pytest.raises(MjstampError, match=r"ctrl is missing.*\(1, 10, 6\)"):
         pushing.rollout_fn(10)(qpos0[None], qvel0[None])

@@ -35,6 +35,8 @@ class CheckSpec:
         particle coordinate per actuator), drawn uniformly in the ctrlrange
         scaled by `ctrl_fraction`; 0 for no controls.
       ctrl_fraction: fraction of each actuator's ctrlrange to draw from.
+      ctrl_box: (low, high) per actuator to draw from instead of the scaled
+        ctrlrange, or None.
     """
 
     horizon: int = 100
@@ -42,15 +44,20 @@ class CheckSpec:
     qvel_range: float = 1.0
     ctrl_segments: int = 0
     ctrl_fraction: float = 0.5
+    ctrl_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
 
 # Per shipped scene: what a planner varies there. Billiards: the cue ball's
 # initial velocity over a 2 s shot (long enough for two or three cushions).
-# Pushing: pusher forces in three segments, starting next to the block's west
-# side, so that most draws push it.
+# Pushing: pusher servo set-points (joint coordinates: the pusher starts 0.15 m
+# west of the block) in three segments, drawn so that the pusher stays at table
+# height and ends up pressing into the block's west side in most draws.
 SCENE_CHECKS = {
     "billiards": CheckSpec(horizon=200, qvel_joints=("cue_x", "cue_y"), qvel_range=3.0),
-    "pushing": CheckSpec(horizon=150, ctrl_segments=3, ctrl_fraction=0.6),
+    "pushing": CheckSpec(
+        horizon=150, ctrl_segments=3,
+        ctrl_box=((0.0, -0.12, -0.01, -0.3, -0.3, -0.05), (0.35, 0.12, 0.01, 0.3, 0.3, 0.05)),
+    ),
 }
 
 
@@ -70,6 +77,11 @@ def _parameterisation(scene: Scene, spec: CheckSpec):
     lo = np.where(m.actuator_ctrllimited, m.actuator_ctrlrange[:, 0], -1.0)
     hi = np.where(m.actuator_ctrllimited, m.actuator_ctrlrange[:, 1], 1.0)
     mid, half = (lo + hi) / 2, (hi - lo) / 2 * spec.ctrl_fraction
+    if spec.ctrl_box is not None:
+        box_lo, box_hi = (np.asarray(b, float) for b in spec.ctrl_box)
+        if box_lo.shape != (m.nu,) or box_hi.shape != (m.nu,):
+            raise MjstampError(f"CheckSpec.ctrl_box needs {m.nu} values per bound")
+        mid, half = (box_lo + box_hi) / 2, (box_hi - box_lo) / 2
     dim = len(dofs) + nseg * m.nu
 
     def to_inputs(theta, xp):

@@ -154,7 +154,7 @@ def load(path: str | os.PathLike, *, fingerprint: str | None = None) -> SkillBan
     """
     path = Path(path)
     if not path.is_file():
-        raise MissingSkillBank(f"skill bank {str(path)!r}: no such file (fit one with load_or_fit)")
+        raise MissingSkillBank(f"skill bank {str(path)!r}: no such file")
     unreadable = f"skill bank {str(path)!r} is unreadable"
     fix = "delete or move it to refit"
     try:
@@ -198,7 +198,7 @@ def load(path: str | os.PathLike, *, fingerprint: str | None = None) -> SkillBan
     if fingerprint is not None and bank.fingerprint != fingerprint:
         raise StaleSkillBank(
             f"skill bank {str(path)!r} is stale: fitted for fingerprint {bank.fingerprint!r}, "
-            f"the demonstrations now give {fingerprint!r}; refit with load_or_fit or delete it"
+            f"the demonstrations now give {fingerprint!r}; refit it or delete it"
         )
     return bank
 

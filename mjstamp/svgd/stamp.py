@@ -230,6 +230,7 @@ def run_stamp(
     config: StampConfig = StampConfig(),
     *,
     log_target_fn: Callable[[jax.Array], jax.Array] | None = None,
+    sgd_logdensity_fn: LogDensityFn | None = None,
     svgd_optimizer: optax.GradientTransformation | None = None,
     sgd_optimizer: optax.GradientTransformation | None = None,
     progress: bool | None = None,
@@ -247,6 +248,9 @@ def run_stamp(
       config: `StampConfig`.
       log_target_fn: batched log p(Γ(θ)), the target at the hard decode; when
         given the SVGD phase is discrete SVGD, eq. (4).
+      sgd_logdensity_fn: the log density the SGD phase ascends; default
+        logdensity_fn. A discrete task passes the target at the hard decode
+        here, so refinement optimises the plan that will be executed.
       svgd_optimizer: optax transformation of the SVGD phase; default
         Adam(config.svgd_learning_rate).
       sgd_optimizer: optax transformation of the SGD phase; default
@@ -292,7 +296,7 @@ def run_stamp(
             svgd_optimizer,
             jacobian=config.jacobian,
         )
-    sgd_step = build_sgd_step(logdensity_fn, sgd_optimizer)
+    sgd_step = build_sgd_step(sgd_logdensity_fn or logdensity_fn, sgd_optimizer)
 
     show = sys.stderr.isatty() if progress is None else bool(progress)
     bar = tqdm(

@@ -16,7 +16,7 @@ from mjstamp.tasks.task import Contact, Rollout, Task, Variable
 
 # name -> (default_config() -> dict, make(config: dict) -> Task, one-line summary)
 _REGISTRY: dict[str, tuple[Callable[[], dict], Callable[[dict], Task], str]] = {}
-_BUILTIN_MODULES = ("mjstamp.tasks.billiards",)
+_BUILTIN_MODULES = ("mjstamp.tasks.billiards", "mjstamp.tasks.pushing")
 
 
 def register(name: str, default_config: Callable[[], dict], summary: str = ""):

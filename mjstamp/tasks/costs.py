@@ -123,3 +123,40 @@ def reaches(body: str, goals: Mapping[str, str], *, radius: float):
         return ok, label
 
     return predicate
+
+
+def box_target(body: str, site: str, *, margin: float = 0.0):
+    """Goal-region loss at the final step: how far a body's centre is outside a box site.
+
+    L = Σ_{i ∈ {x, y}} max(0, |x_T,i − c_i| − t_i)², with c the site's centre
+    and t_i its half-size less `margin` (so that a plan aims inside the region,
+    not at its edge).
+
+    References:
+      STAMP App. C-C (L_target).
+    """
+
+    def cost(r):
+        x = r.body_pos(body)[:, -1, :2]
+        c = r.site_pos(site)[:, -1, :2]
+        half = jnp.asarray(r.scene.m.site_size[r.scene.site(site), :2] - margin, x.dtype)
+        return jnp.sum(jax.nn.relu(jnp.abs(x - c) - half) ** 2, axis=-1)
+
+    return cost
+
+
+def ends_in(body: str, site: str):
+    """Success predicate: the body's centre is inside a box site at the final step.
+
+    Returns:
+      fn(replay) -> (ok (n,) bool, label (n,) str, always "").
+    """
+
+    def predicate(replay):
+        x = replay.body_pos(body)[:, -1, :2]
+        c = replay.site_pos(site)[:, -1, :2]
+        half = replay.scene.m.site_size[replay.scene.site(site), :2]
+        ok = np.all(np.abs(x - c) <= half, axis=-1)
+        return ok, np.full(len(ok), "", dtype=object)
+
+    return predicate

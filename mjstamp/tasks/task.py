@@ -156,6 +156,7 @@ class Task:
         self.costs: list[Term] = []
         self.priors: list[Term] = []
         self.controls_fn: Callable | None = None
+        self.actions_fn: Callable | None = None
         self.success_fn: Callable | None = None
         self.kernel_weights = {"continuous": 1.0, "angles": 1.0, "actions": 1.0, "symbols": 1.0}
         self.bound_stiffness = 100.0
@@ -219,14 +220,33 @@ class Task:
             qpos=self._joint_addresses(initial_qpos, "qpos", size, name),
         ))
 
-    def angle(self, name: str, size: int = 1, *, initial_qpos: Sequence[str] | None = None):
-        """Declares angles (radians, wrap-around; von Mises kernel)."""
+    def angle(
+        self,
+        name: str,
+        size: int = 1,
+        *,
+        low: float = -np.pi,
+        high: float = np.pi,
+        initial_qpos: Sequence[str] | None = None,
+    ):
+        """Declares angles (radians, wrap-around; von Mises kernel).
+
+        Args:
+          name: variable name.
+          size: number of angles.
+          low: lower end of the range particles start in (not a bound).
+          high: upper end of that range; high - low <= 2π.
+          initial_qpos: hinge joints whose initial position this variable sets.
+        """
         self._check_new(name, "variable")
         size = int(size)
         if size < 1:
             raise MjstampError(f"task {self.name!r}: angle {name!r} size={size} must be >= 1")
+        if not (low < high <= low + 2 * np.pi + 1e-12):
+            raise MjstampError(f"task {self.name!r}: angle {name!r} needs low < high <= "
+                               f"low + 2π; got low={low}, high={high}")
         self.variables.append(Variable(
-            name, "angle", size, np.full(size, -np.pi), np.full(size, np.pi),
+            name, "angle", size, np.full(size, float(low)), np.full(size, float(high)),
             qpos=self._joint_addresses(initial_qpos, "qpos", size, name),
         ))
 
@@ -300,8 +320,22 @@ class Task:
         terms.append(Term(name, fn, float(weight)))
 
     def controls(self, fn: Callable[[dict], jax.Array]) -> None:
-        """Sets the map params {name: (n, size)} -> controls (n, T, nu)."""
+        """Sets the map params {name: (n, size)} -> controls (n, T, nu).
+
+        A discrete variable reaches `fn` as one-hot weights (n, phases, options):
+        Γ̃ (softmax) where the planner needs gradients, Γ (hard) where a plan is
+        judged (the discrete target of eq. 4, the SGD phase, verification).
+        """
         self.controls_fn = fn
+
+    def actions_from(self, fn: Callable) -> None:
+        """Sets how the discrete actions a plan *performed* are read off a replay.
+
+        fn(replay, planned) -> list of n lists of option names, where `planned`
+        holds the n lists Γ decodes from θ. Without it the task plan shows the
+        planned actions; with it, what happened (e.g. which sides were pushed).
+        """
+        self.actions_fn = fn
 
     def success(self, fn: Callable) -> None:
         """Sets the success predicate on a MuJoCo C replay; see `plans.Replay`.
@@ -371,8 +405,31 @@ class Task:
         """Rollout fields the costs may read."""
         return ("qpos", "qvel", "xpos", "geom_xpos", "geom_xmat", "site_xpos")
 
-    def inputs(self, params: dict, xp=jnp):
-        """Params -> (qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu))."""
+    @property
+    def has_actions(self) -> bool:
+        """Whether θ holds discrete actions (logits); then STAMP runs discrete SVGD."""
+        return any(v.kind == "logits" for v in self.variables)
+
+    def choices(self, params: dict, *, hard: bool) -> dict:
+        """Params with each discrete variable as one-hots (n, phases, options).
+
+        hard=False gives Γ̃ = softmax per phase (differentiable), hard=True Γ.
+        """
+        out = dict(params)
+        for v in self.variables:
+            if v.kind == "logits":
+                m = len(v.options)
+                x = jnp.asarray(params[v.name])
+                onehot = relax.hard_onehot(x, m) if hard else relax.soft_onehot(x, m)
+                out[v.name] = onehot.reshape(x.shape[0], v.phases, m)
+        return out
+
+    def inputs(self, params: dict, xp=jnp, *, hard: bool = True):
+        """Params -> (qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu)).
+
+        hard: discrete actions reach the controls as Γ (True, what a plan means)
+        or as Γ̃ (False, the planner's relaxation).
+        """
         m = self.scene.m
         n = next(iter(params.values())).shape[0]
         dtype = next(iter(params.values())).dtype
@@ -386,16 +443,24 @@ class Task:
                     state[field] = set_columns(state[field], np.asarray(adr), params[v.name])
         qpos, qvel = state["qpos"], state["qvel"]
         if self.controls_fn is not None:
-            ctrl = self.controls_fn(params)
+            ctrl = self.controls_fn(self.choices(params, hard=hard) if self.has_actions else params)
+            if xp is np:
+                ctrl = np.asarray(ctrl)
         else:
             ctrl = xp.zeros((n, self.horizon, m.nu), dtype)
         return qpos, qvel, ctrl
 
-    def evaluate(self, theta: jax.Array) -> tuple[Rollout, dict[str, jax.Array]]:
-        """Rolls θ (n, d) out in MJX; returns the Rollout and each term's (n,) value."""
+    def evaluate(
+        self, theta: jax.Array, *, hard: bool = False
+    ) -> tuple[Rollout, dict[str, jax.Array]]:
+        """Rolls θ (n, d) out in MJX; returns the Rollout and each term's (n,) value.
+
+        hard: evaluate discrete actions at Γ(θ) (the target p(Γ(θ)) of eq. 4)
+        instead of the relaxation Γ̃(θ).
+        """
         params = self.unpack(theta)
         rollout = self.scene.rollout_fn(self.horizon, fields=self.fields())
-        traj = rollout(*self.inputs(params))
+        traj = rollout(*self.inputs(params, hard=hard))
         r = Rollout(self, traj, params)
         for c in self.contacts:
             mask = None if c.before is None else r.until_contact(*c.before)
@@ -439,17 +504,18 @@ class Task:
         parts += [r.symbols[c.name][:, None] for c in self.contacts]
         return jnp.concatenate(parts, axis=1)
 
-    def log_posterior(self, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def log_posterior(self, theta: jax.Array, *, hard: bool = False):
         """Batched log ρ(θ | O = 1) and kernel features, from one rollout.
 
         Args:
           theta: (n, d) particles.
+          hard: discrete actions at Γ(θ) rather than Γ̃(θ) (see `evaluate`).
 
         Returns:
           logp: (n,) = −C(θ) (STAMP eq. 6-8).
           features: (n, f) ψ(θ), see `features`.
         """
-        r, values = self.evaluate(theta)
+        r, values = self.evaluate(theta, hard=hard)
         return -self.cost_total(values), self.features(r)
 
     def feature_groups(self) -> dict[str, list[int]]:

@@ -1,0 +1,224 @@
+"""Block pushing (STAMP §V-A2, App. C), written with the public task API.
+
+θ = [s¹..s^K, g¹..g^K] as in eq. (9): four logits per push (which side of the
+block to push: north, east, south, west) and the block's goal pose after each
+push (x, y; yaw φ). θ orders the goal positions before the yaws, so a box
+variable holds every (x, y) and an angle variable every φ. Controls are not
+in θ: each push is played by that side's DMP skill (`mjstamp.skills.pushing`)
+and tracked by the scene's servos, so K pushes take 7K coordinates.
+
+The task plan is the sequence of sides the pusher actually pushed, read off the
+replay (a phase counts when the pusher touched the block and the block moved
+at least 1 cm); a plan is verified when its MuJoCo C replay ends with the
+block's centre inside the goal region.
+
+Choices (and why):
+- log posterior = −β_target L_target − β_subgoal L_subgoal + β_traj log p(g):
+  App. C-C's goal-region loss and Manhattan prior, plus a subgoal term
+  (block after push k near g^k) that keeps the planned poses honest, since
+  the next push's approach is aimed at g^k;
+- the Manhattan prior reads App. C-C's p(g^k | g^{k−1}) as
+  exp(−[D(g^{k−1}, g^k) + D(g^k, G) − D(g^{k−1}, G)]) with G the goal region's
+  centre: zero for pushes that head monotonically towards G, and the detour
+  length otherwise (the paper's second term, D(g^k, g^k), is read as a typo);
+- the goal loss aims 3 cm inside the 8 cm half-size region, so that a plan the
+  relaxation calls good stays good when replayed with the scene's own solver;
+- discrete SVGD (eq. 4) on Γ̃ with the target at Γ, then SGD on the goals
+  with the sides fixed (App. E);
+- goal yaws start within ±0.3 rad: the block's four sides make yaw ambiguous
+  beyond ±π/4 and the servos push at side centres.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from mjstamp.errors import MjstampError
+from mjstamp.scenes import Scene
+from mjstamp.scenes.scene import package_model_path
+from mjstamp.skills import pushing as skills
+from mjstamp.tasks import costs, register
+from mjstamp.tasks.task import Task
+
+
+def default_config() -> dict:
+    """Defaults of the pushing task and of its solve."""
+    return {
+        "max_pushes": 2,
+        "approach_steps": 40,
+        "push_steps": 60,
+        "settle_steps": 20,
+        "x_min": -0.4,
+        "x_max": 0.9,
+        "y_min": -0.4,
+        "y_max": 0.7,
+        "goal_x": 0.5,
+        "goal_y": 0.3,
+        "goal_margin": 0.03,
+        "target_weight": 500.0,
+        "subgoal_weight": 50.0,
+        "trajectory_weight": 5.0,
+        "skill_bank": "",  # "" = ~/.cache/mjstamp/skills/pushing.npz, refitted when stale
+        # solve
+        "particles": 64,
+        "svgd_learning_rate": 0.03,
+        "sgd_learning_rate": 0.01,
+        "svgd_max_iters": 40,
+        "sgd_max_iters": 60,
+        "min_iters": 20,
+        "jacobian": "rev",
+    }
+
+
+def _scene(goal_x: float, goal_y: float) -> Scene:
+    """The shipped pushing scene, its goal region moved to (goal_x, goal_y)."""
+    path = package_model_path("pushing.xml")
+    spec = mujoco.MjSpec.from_file(str(path))
+    site = spec.site("goal")
+    if tuple(site.pos[:2]) == (goal_x, goal_y):
+        return Scene.shipped("pushing")
+    site.pos = [goal_x, goal_y, site.pos[2]]
+    return Scene(spec.to_xml(), name="pushing")
+
+
+def manhattan_detour(goal_xy, start_xy, target_xy):
+    """Σ_k D(g^{k−1}, g^k) + D(g^k, G) − D(g^{k−1}, G), D the (smoothed) Manhattan distance.
+
+    Args:
+      goal_xy: (n, K, 2) intermediate goals g¹..g^K.
+      start_xy: (2,) g⁰, the block's start.
+      target_xy: (2,) G, the goal region's centre.
+
+    Returns:
+      (n,) the detour: >= 0, 0 when every push heads monotonically towards G.
+
+    References:
+      STAMP App. C-C (trajectory loss).
+    """
+
+    def dist(a, b):
+        return jnp.sum(jnp.sqrt((a - b) ** 2 + 1e-8), axis=-1)
+
+    start = jnp.broadcast_to(jnp.asarray(start_xy, goal_xy.dtype), goal_xy[:, :1].shape)
+    prev = jnp.concatenate([start, goal_xy[:, :-1]], axis=1)
+    target = jnp.asarray(target_xy, goal_xy.dtype)
+    return jnp.sum(dist(prev, goal_xy) + dist(goal_xy, target) - dist(prev, target), axis=1)
+
+
+def executed_sides(setup: skills.PushSetup, scene, *, min_travel: float = 0.01):
+    """fn(replay, planned) -> the sides each plan actually pushed, phase by phase.
+
+    A phase counts when, during its push part, the pusher touched the block
+    (signed distance < 0) and the block moved at least `min_travel`; the side
+    is the one the pusher touched most often (pusher position in the block's
+    frame, largest component along a side normal).
+    """
+    bq = [scene.qpos_adr(j) for j in ("block_x", "block_y", "block_yaw")]
+    pq = [scene.qpos_adr(j) for j in ("pusher_x", "pusher_y", "pusher_z")]
+    origin = np.asarray(setup.pusher_origin)
+    block_origin = scene.m.body_pos[scene.body("block")]
+
+    def fn(replay, planned):
+        K = len(planned[0]) if planned else 0
+        q = replay.qpos
+        block = q[..., bq] + np.r_[block_origin[:2], 0.0]
+        pusher = q[..., pq] + origin
+        c, s = np.cos(block[..., 2]), np.sin(block[..., 2])
+        d = pusher[..., :2] - block[..., :2]
+        local = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+        # Sphere-box signed distance in the block's frame (z: both centred at 0).
+        box = np.array([setup.half, setup.half, setup.half])
+        rel = np.concatenate([local, pusher[..., 2:]], axis=-1)
+        out = np.abs(rel) - box
+        sd = np.linalg.norm(np.maximum(out, 0.0), axis=-1) + np.minimum(out.max(-1), 0.0)
+        touching = sd - setup.radius < 0.0
+        side_of = np.argmax(local @ skills.NORMALS.T, axis=-1)  # (n, T)
+        result = []
+        windows = setup.phase_windows(K)
+        for i in range(q.shape[0]):
+            seq = []
+            for a, b in windows:
+                lo = max(a - 1, 0)
+                moved = np.linalg.norm(block[i, b - 1, :2] - block[i, lo, :2])
+                hits = side_of[i, a:b][touching[i, a:b]]
+                if len(hits) and moved >= min_travel:
+                    seq.append(skills.SIDES[int(np.bincount(hits, minlength=4).argmax())])
+            result.append(seq)
+        return result
+
+    return fn
+
+
+@register("pushing", default_config,
+          "push a block into the goal region with up to K pushes (Fig. 8; --max-pushes K)")
+def make(config: dict) -> Task:
+    """Builds the pushing task from a config (see `default_config`)."""
+    K = int(config["max_pushes"])
+    if K < 1:
+        raise MjstampError(f"task 'pushing': max_pushes={K} must be >= 1")
+    lo = np.array([config["x_min"], config["y_min"]], float)
+    hi = np.array([config["x_max"], config["y_max"]], float)
+    if not np.all(hi > lo):
+        raise MjstampError(f"task 'pushing': workspace x in [{lo[0]}, {hi[0]}], y in "
+                           f"[{lo[1]}, {hi[1]}] is empty")
+    scene = _scene(float(config["goal_x"]), float(config["goal_y"]))
+    goal = scene.m.site_pos[scene.site("goal"), :2]
+    half = scene.m.site_size[scene.site("goal"), :2]
+    if np.any(goal - half < lo) or np.any(goal + half > hi):
+        raise MjstampError(
+            f"task 'pushing': goal region at ({goal[0]:g}, {goal[1]:g}) (half-size "
+            f"{half[0]:g}) is outside the workspace box x in [{lo[0]:g}, {hi[0]:g}], "
+            f"y in [{lo[1]:g}, {hi[1]:g}]"
+        )
+    setup = skills.PushSetup.from_scene(
+        scene, approach_steps=config["approach_steps"], push_steps=config["push_steps"],
+        settle_steps=config["settle_steps"])
+    bank = skills.load_bank(scene, setup, config["skill_bank"] or None)
+
+    task = Task(
+        "pushing", scene, horizon=setup.horizon(K),
+        description=f"push the block into the goal region with up to {K} pushes; "
+        "task plan = the sides pushed, in order",
+    )
+    task.discrete("side", skills.SIDES, phases=K, bound=3.0)
+    task.box("goal_xy", low=np.tile(lo, K), high=np.tile(hi, K))
+    task.angle("goal_yaw", K, low=-0.3, high=0.3)
+
+    def goal_poses(params):
+        n = params["goal_xy"].shape[0]
+        xy = jnp.reshape(params["goal_xy"], (n, K, 2))
+        return jnp.concatenate([xy, jnp.reshape(params["goal_yaw"], (n, K, 1))], axis=-1)
+
+    def controls(params):
+        x_ref, v_ref = skills.references(bank, setup, jnp.asarray(params["side"]),
+                                         goal_poses(params))
+        return skills.controls(setup, x_ref, v_ref)
+
+    windows = setup.phase_windows(K)
+
+    def subgoals(r):
+        """Mean squared distance of the block after each push to its planned g^k."""
+        block = r.body_pos("block")[..., :2]
+        ends = jnp.stack([block[:, b - 1] for _, b in windows], axis=1)  # (n, K, 2)
+        planned = jnp.reshape(r.params["goal_xy"], ends.shape)
+        return jnp.mean(jnp.sum((ends - planned) ** 2, axis=-1), axis=1)
+
+    start = np.asarray(setup.block0[:2])
+
+    def trajectory(params):
+        n = params["goal_xy"].shape[0]
+        return -manhattan_detour(jnp.reshape(params["goal_xy"], (n, K, 2)), start, goal)
+
+    task.controls(controls)
+    task.cost("target", costs.box_target("block", "goal", margin=config["goal_margin"]),
+              weight=config["target_weight"])
+    task.cost("subgoals", subgoals, weight=config["subgoal_weight"])
+    task.prior("trajectory", trajectory, weight=config["trajectory_weight"])
+    task.success(costs.ends_in("block", "goal"))
+    task.actions_from(executed_sides(setup, scene))
+    task.display(trace=("block", "pusher"), force=[("pusher", "block")])
+    task.setup = setup
+    task.bank = bank
+    return task

@@ -1,0 +1,143 @@
+"""Pushing: demonstrations, DMP skills in the scene, references, decoding, bad input."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjstamp import plans, tasks
+from mjstamp.cli import main
+from mjstamp.errors import MjstampError
+from mjstamp.skills import bank as bank_mod
+from mjstamp.skills import pushing as skills
+from mjstamp.tasks.pushing import manhattan_detour
+
+SIDE = {name: i for i, name in enumerate(skills.SIDES)}
+
+
+@pytest.fixture(scope="module")
+def task():
+    task, _ = tasks.load("pushing", max_pushes=2)
+    return task
+
+
+def plan_theta(task, pushes):
+    """θ for hand-written plans [(side, (x, y)), ...] (yaw 0), Γ picking each side."""
+    sl = task.slices()
+    theta = np.zeros((len(pushes), task.dim))
+    for i, plan in enumerate(pushes):
+        logits = np.full((2, 4), -2.0)
+        for k, (side, xy) in enumerate(plan):
+            logits[k, SIDE[side]] = 2.0
+            theta[i, sl["goal_xy"].start + 2 * k : sl["goal_xy"].start + 2 * k + 2] = xy
+        theta[i, sl["side"]] = logits.ravel()
+    return theta
+
+
+def test_skills_reproduce_the_recorded_demonstrations(task):
+    errors = skills.fit_errors(task.scene, task.setup, task.bank)
+    assert set(errors) == {f"{s}/{p}" for s in skills.SIDES for p in ("approach", "push")}
+    for name, e in errors.items():
+        assert e["rms_rel"] <= 0.02, (name, e)
+        assert e["end_rel"] <= 0.01, (name, e)
+
+
+def test_demonstrations_lift_over_the_block_and_push_it(task):
+    setup = task.setup
+    demos = skills.record_demonstrations(task.scene, setup, SIDE["west"])
+    n_cases = len(skills.demonstration_cases(setup, SIDE["west"]))
+    assert demos["approach"].shape == (n_cases, setup.approach_steps + 1, 3)
+    assert demos["push"].shape == (n_cases, setup.push_steps + 1, 3)
+    # Up over the block's top (half + radius) while changing sides.
+    assert demos["approach"][..., 2].max(axis=1).min() > setup.half + setup.radius
+    # A west push moves the pusher east.
+    assert np.all(demos["push"][:, -1, 0] > demos["push"][:, 0, 0] + 0.05)
+
+
+def test_references_go_from_the_pusher_to_the_goal_side(task):
+    setup = task.setup
+    goals = jnp.asarray([[[0.3, 0.0, 0.0], [0.3, 0.3, 0.2]]])
+    onehot = jnp.asarray([[np.eye(4)[SIDE["west"]], np.eye(4)[SIDE["south"]]]])
+    x, v = skills.references(task.bank, setup, onehot, goals)
+    assert x.shape == v.shape == (1, setup.horizon(2), 3)
+    x = np.asarray(x)[0]
+    touch = setup.half + setup.radius
+    first_end = setup.approach_steps + setup.push_steps - 1
+    np.testing.assert_allclose(x[first_end, :2], [0.3 - touch, 0.0], atol=3e-3)
+    yaw = 0.2
+    south = np.array([0.3 + touch * np.sin(yaw), 0.3 - touch * np.cos(yaw)])
+    np.testing.assert_allclose(x[2 * first_end + 1, :2], south, atol=3e-3)
+    np.testing.assert_allclose(x[-1], x[2 * first_end + 1], atol=1e-12)  # settles
+    # The reference starts next to the pusher's start and lifts when changing sides.
+    assert np.linalg.norm(x[0] - np.asarray(setup.pusher0)) < 0.02
+    second = slice(first_end + 1, first_end + 1 + setup.approach_steps)
+    assert x[second, 2].max() > setup.half + setup.radius
+
+
+def test_hand_written_plans_decode_to_the_sides_pushed(task):
+    theta = plan_theta(task, [
+        [("west", (0.3, -0.02)), ("south", (0.48, 0.3))],
+        [("south", (0.0, 0.3)), ("west", (0.5, 0.3))],
+        [("west", (0.5, 0.3)), ("west", (0.5, 0.3))],  # the second push does nothing
+        [("north", (0.0, -0.3)), ("north", (0.0, -0.3))],
+    ])
+    replay = plans.simulate_c(task, theta)
+    decoded = plans.decode(task, replay, theta)
+    assert list(decoded.plan) == ["west,south", "south,west", "west", "north"]
+    assert decoded.ok.tolist() == [True, True, True, False]
+
+
+def test_manhattan_detour_is_zero_for_monotone_pushes_only():
+    goal = np.array([0.5, 0.3])
+    monotone = jnp.asarray([[[0.3, 0.0], [0.5, 0.3]], [[0.0, 0.3], [0.5, 0.3]]])
+    detour = jnp.asarray([[[-0.2, 0.0], [0.5, 0.3]], [[0.3, -0.2], [0.5, 0.3]]])
+    assert np.allclose(manhattan_detour(monotone, np.zeros(2), goal), 0.0, atol=1e-3)
+    np.testing.assert_allclose(manhattan_detour(detour, np.zeros(2), goal), [0.4, 0.4],
+                               atol=1e-3)
+
+
+def test_bad_settings_are_one_line_errors(tmp_path):
+    with pytest.raises(MjstampError, match="max_pushes=0 must be >= 1"):
+        tasks.load("pushing", max_pushes=0)
+    with pytest.raises(MjstampError, match=r"goal region at \(1.5, 0.3\).*outside the workspace"):
+        tasks.load("pushing", goal_x=1.5)
+    missing = tmp_path / "none.npz"
+    with pytest.raises(MjstampError, match="not found"):
+        tasks.load("pushing", skill_bank=str(missing))
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a bank")
+    with pytest.raises(MjstampError, match="junk.npz"):
+        tasks.load("pushing", skill_bank=str(junk))
+
+
+def test_an_explicit_stale_bank_is_refused_not_replaced(task, tmp_path):
+    path = tmp_path / "bank.npz"
+    stale = bank_mod.SkillBank(skills=dict(task.bank.skills), fingerprint="0" * 16)
+    bank_mod.save(stale, path)
+    before = path.read_bytes()
+    with pytest.raises(MjstampError, match="stale"):
+        tasks.load("pushing", skill_bank=str(path))
+    assert path.read_bytes() == before
+
+
+def test_cli_pushing_bad_input(capsys):
+    cases = [
+        (["solve", "pushing", "--max-pushes", "0"], "--max-pushes=0 must be >= 1"),
+        (["solve", "billiards", "--max-pushes", "2"], "task 'billiards' has no pushes"),
+        (["solve", "pushing", "--set", "skill_bank=/nonexistent/bank.npz"], "not found"),
+    ]
+    for argv, expected in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and expected in err[0], (argv, err)
+
+
+def test_cli_fits_a_skill_bank_file(tmp_path, capsys):
+    out = tmp_path / "bank.npz"
+    assert main(["skills", "--out", str(out), "--json", "--quiet"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["path"] == str(out) and out.is_file()
+    assert max(e["rms_rel"] for e in report["errors"].values()) <= 0.02
+    task, _ = tasks.load("pushing", skill_bank=str(out))  # a fresh file is current
+    assert task.bank.fingerprint == report["fingerprint"]
