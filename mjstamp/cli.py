@@ -121,8 +121,9 @@ def _print_table(summary: dict) -> None:
     print("-" * len(line))
     for b in body:
         print("  ".join(c.ljust(w) for c, w in zip(b, widths, strict=True)))
-    print(f"distinct verified task plans: {summary['distinct_verified_task_plans']} "
-          f"(symbol codes: {summary['distinct_verified_codes']})")
+    codes = (f" (symbol codes: {summary['distinct_verified_codes']})"
+             if summary["declaration"]["symbols"] else "")
+    print(f"distinct verified task plans: {summary['distinct_verified_task_plans']}{codes}")
     if "coverage" in summary:
         detail = summary["coverage_detail"]
         print(f"coverage: {summary['coverage']:.0%} of the {len(detail['feasible'])} task plans "

@@ -172,10 +172,10 @@ def solve(task, config: dict, *, seed: int = 0, progress: bool | None = None) ->
         # leaves the logits alone: App. E fixes them during SGD the same way.
         discrete = {
             "log_target_fn": lambda th: task.log_posterior(th, hard=True)[0],
-            "sgd_logdensity_fn": lambda th: task.log_posterior(th, hard=True),
+            "sgd_logdensity_fn": task.logdensity(hard=True),
         }
     result = svgd.run_stamp(
-        task.log_posterior, theta0, task.kernel(), stamp_config, progress=progress,
+        task.logdensity(), theta0, task.kernel(), stamp_config, progress=progress,
         jit=lambda step, state, key, phase: _jit(step, task, f"stamp-{phase}", state, key),
         **discrete,
     )

@@ -81,11 +81,15 @@ def test_hand_written_plans_decode_to_the_sides_pushed(task):
         [("south", (0.0, 0.3)), ("west", (0.5, 0.3))],
         [("west", (0.5, 0.3)), ("west", (0.5, 0.3))],  # the second push does nothing
         [("north", (0.0, -0.3)), ("north", (0.0, -0.3))],
+        # The first "push" misses (its goal is behind the pusher), so the second
+        # approach, aimed at the block's planned pose, lowers the pusher onto the
+        # block's top, and it drags the block by friction: not a push of a side.
+        [("north", (0.01, 0.11)), ("south", (0.49, 0.40))],
     ])
     replay = plans.simulate_c(task, theta)
     decoded = plans.decode(task, replay, theta)
-    assert list(decoded.plan) == ["west,south", "south,west", "west", "north"]
-    assert decoded.ok.tolist() == [True, True, True, False]
+    assert list(decoded.plan) == ["west,south", "south,west", "west", "north", "top"]
+    assert decoded.ok.tolist() == [True, True, True, False, False]
 
 
 def test_manhattan_detour_is_zero_for_monotone_pushes_only():

@@ -10,7 +10,10 @@ and tracked by the scene's servos, so K pushes take 7K coordinates.
 The task plan is the sequence of sides the pusher actually pushed, read off the
 replay (a phase counts when the pusher touched the block and the block moved
 at least 1 cm); a plan is verified when its MuJoCo C replay ends with the
-block's centre inside the goal region.
+block's centre inside the goal region and the pusher never moved the block by
+pressing on its top face (which a pusher lowered onto a block that is not
+where the plan expected can do, dragging it by friction: that is decoded as
+"top" and fails).
 
 Choices (and why):
 - log posterior = −β_target L_target − β_subgoal L_subgoal + β_traj log p(g):
@@ -21,6 +24,8 @@ Choices (and why):
   exp(−[D(g^{k−1}, g^k) + D(g^k, G) − D(g^{k−1}, G)]) with G the goal region's
   centre: zero for pushes that head monotonically towards G, and the detour
   length otherwise (the paper's second term, D(g^k, g^k), is read as a typo);
+- a cost on touching the block from above (`pushed_from_above`) steers the
+  planner away from such drags;
 - the goal loss aims 3 cm inside the 8 cm half-size region, so that a plan the
   relaxation calls good stays good when replayed with the scene's own solver;
 - discrete SVGD (eq. 4) on Γ̃ with the target at Γ, then SGD on the goals
@@ -31,6 +36,7 @@ Choices (and why):
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -60,6 +66,7 @@ def default_config() -> dict:
         "target_weight": 500.0,
         "subgoal_weight": 50.0,
         "trajectory_weight": 5.0,
+        "above_weight": 100.0,
         "skill_bank": "",  # "" = ~/.cache/mjstamp/skills/pushing.npz, refitted when stale
         # solve
         "particles": 64,
@@ -107,21 +114,56 @@ def manhattan_detour(goal_xy, start_xy, target_xy):
     return jnp.sum(dist(prev, goal_xy) + dist(goal_xy, target) - dist(prev, target), axis=1)
 
 
-def executed_sides(setup: skills.PushSetup, scene, *, min_travel: float = 0.01):
+TOP = "top"
+
+
+def pushed_from_above(setup: skills.PushSetup, scene):
+    """Cost: the share of steps the pusher presses on the block's top face.
+
+    A pusher lowered onto the block (where a plan expected the block elsewhere)
+    can drag it by friction; that is not a push of a side. Smooth in θ:
+    mean_t σ((z_t − h) / 5 mm) σ(−sd_t / 2 mm), z the pusher's height, h the
+    block's half side, sd their signed distance.
+    """
+
+    def cost(r):
+        z = r.body_pos("pusher")[..., 2]
+        sd = r.signed_distance("pusher", "block")
+        above = jax.nn.sigmoid((z - setup.half) / 0.005)
+        return jnp.mean(above * jax.nn.sigmoid(-sd / 0.002), axis=1)
+
+    return cost
+
+
+def ends_in_goal_pushing_sides(setup: skills.PushSetup, scene, actions):
+    """Success: the block ends in the goal region and no push was from above."""
+    in_goal = costs.ends_in("block", "goal")
+
+    def predicate(replay):
+        ok, label = in_goal(replay)
+        above = np.array([TOP in seq for seq in actions(replay)], dtype=bool)
+        return ok & ~above, label
+
+    return predicate
+
+
+def executed_sides(setup: skills.PushSetup, scene, *, pushes: int, min_travel: float = 0.01):
     """fn(replay, planned) -> the sides each plan actually pushed, phase by phase.
 
     A phase counts when, during its push part, the pusher touched the block
     (signed distance < 0) and the block moved at least `min_travel`; the side
     is the one the pusher touched most often (pusher position in the block's
-    frame, largest component along a side normal).
+    frame, largest component along a side normal), or `TOP` when the pusher
+    was mostly above the block's top face (not a push: see `no_top_contact`).
     """
     bq = [scene.qpos_adr(j) for j in ("block_x", "block_y", "block_yaw")]
     pq = [scene.qpos_adr(j) for j in ("pusher_x", "pusher_y", "pusher_z")]
     origin = np.asarray(setup.pusher_origin)
     block_origin = scene.m.body_pos[scene.body("block")]
 
-    def fn(replay, planned):
-        K = len(planned[0]) if planned else 0
+    def fn(replay, planned=None):
+        del planned
+        K = pushes
         q = replay.qpos
         block = q[..., bq] + np.r_[block_origin[:2], 0.0]
         pusher = q[..., pq] + origin
@@ -135,6 +177,9 @@ def executed_sides(setup: skills.PushSetup, scene, *, min_travel: float = 0.01):
         sd = np.linalg.norm(np.maximum(out, 0.0), axis=-1) + np.minimum(out.max(-1), 0.0)
         touching = sd - setup.radius < 0.0
         side_of = np.argmax(local @ skills.NORMALS.T, axis=-1)  # (n, T)
+        # Over the block's top face: a touch from above (pressing and dragging it).
+        side_of = np.where(pusher[..., 2] > setup.half, len(skills.SIDES), side_of)
+        names = (*skills.SIDES, TOP)
         result = []
         windows = setup.phase_windows(K)
         for i in range(q.shape[0]):
@@ -144,7 +189,7 @@ def executed_sides(setup: skills.PushSetup, scene, *, min_travel: float = 0.01):
                 moved = np.linalg.norm(block[i, b - 1, :2] - block[i, lo, :2])
                 hits = side_of[i, a:b][touching[i, a:b]]
                 if len(hits) and moved >= min_travel:
-                    seq.append(skills.SIDES[int(np.bincount(hits, minlength=4).argmax())])
+                    seq.append(names[int(np.bincount(hits, minlength=5).argmax())])
             result.append(seq)
         return result
 
@@ -216,8 +261,10 @@ def make(config: dict) -> Task:
               weight=config["target_weight"])
     task.cost("subgoals", subgoals, weight=config["subgoal_weight"])
     task.prior("trajectory", trajectory, weight=config["trajectory_weight"])
-    task.success(costs.ends_in("block", "goal"))
-    task.actions_from(executed_sides(setup, scene))
+    task.cost("from_above", pushed_from_above(setup, scene), weight=config["above_weight"])
+    sides = executed_sides(setup, scene, pushes=K)
+    task.success(ends_in_goal_pushing_sides(setup, scene, sides))
+    task.actions_from(sides)
     task.display(trace=("block", "pusher"), force=[("pusher", "block")])
     task.setup = setup
     task.bank = bank

@@ -495,13 +495,18 @@ class Task:
 
     def features(self, r: Rollout) -> jax.Array:
         """Kernel features ψ(θ): continuous coordinates, angles, Γ̃ one-hots, symbols."""
+        parts = [self.param_features(r.params)]
+        parts += [r.symbols[c.name][:, None] for c in self.contacts]
+        return jnp.concatenate(parts, axis=1)
+
+    def param_features(self, params: dict) -> jax.Array:
+        """The part of ψ(θ) that needs no rollout: θ with logits replaced by Γ̃."""
         parts = []
         for v in self.variables:
-            x = r.params[v.name]
+            x = params[v.name]
             if v.kind == "logits":
                 x = relax.soft_onehot(x, len(v.options))
             parts.append(x)
-        parts += [r.symbols[c.name][:, None] for c in self.contacts]
         return jnp.concatenate(parts, axis=1)
 
     def log_posterior(self, theta: jax.Array, *, hard: bool = False):
@@ -566,7 +571,25 @@ class Task:
                     start += len(g)
                 terms.append((self.kernel_weights[part], make(groups=local), flat))
             base = svgd.sum_kernels(terms)
+        if not self.contacts:
+            # ψ needs no rollout: a feature map of θ alone keeps the SVGD step at one
+            # pullback through the rollout (features read off the rollout cost one
+            # pullback, or one pushforward, per feature or coordinate).
+            return svgd.feature_kernel(
+                base, lambda theta: self.param_features(self.unpack(theta)),
+                include_inputs=False, jacobian="fwd",
+            )
         return svgd.feature_kernel(base, include_inputs=False)
+
+    def logdensity(self, *, hard: bool = False) -> Callable:
+        """The batched log density STAMP moves particles with (see `kernel`).
+
+        Returns (logp, ψ) from one rollout where the kernel reads features of the
+        rollout (contact symbols), else logp alone.
+        """
+        if self.contacts:
+            return lambda theta: self.log_posterior(theta, hard=hard)
+        return lambda theta: self.log_posterior(theta, hard=hard)[0]
 
     def initial_particles(self, key: jax.Array, n: int) -> jax.Array:
         """N particles uniform in the bounds (logits: uniform base of App. A)."""
