@@ -1,4 +1,6 @@
-"""Wall time of `mjstamp solve billiards`: cold process, warm caches, rollout share.
+"""Wall time of `mjstamp solve`: billiards (cold and warm), and pushing for K = 1..5.
+
+Billiards (`--task billiards`, the default):
 
 Runs the default solve in two fresh processes sharing empty cache folders: the
 first (cold) fills JAX's persistent compilation cache and mjstamp's trace
@@ -11,7 +13,17 @@ number of STAMP iterations, over the solve's wall time.
 
 Target on a 2-core CPU: warm wall time <= 60 s.
 
+Pushing (`--task pushing --max-pushes 1 2 3 4 5`): the default solve for each
+K, one process each, using the user's persistent caches (a K met for the
+first time compiles). Reports each process's wall time, the solve's
+`wall_time_s`, the first and median iteration times per phase, and
+`stamp_steady_s` = SVGD iterations × median SVGD iteration + SGD iterations
+× median SGD iteration: STAMP's time without compiling, which is what the
+paper's Table III compares across K (runtime nearly flat in K on a GPU).
+The ratio time(K=5) / time(K=1) is given for both.
+
 Usage: python benchmarks/solve.py [--json] [--particles N ...]
+       python benchmarks/solve.py --task pushing [--max-pushes 1 2 3 4 5] [--json]
 """
 
 from __future__ import annotations
@@ -25,11 +37,12 @@ import tempfile
 import time
 
 
-def _run_solve(cache: str, extra: list[str]) -> tuple[float, dict]:
-    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=os.path.join(cache, "jax"),
-               MJSTAMP_TRACE_CACHE=os.path.join(cache, "trace"))
-    cmd = [sys.executable, "-m", "mjstamp.cli", "solve", "billiards", "--json", "--quiet",
-           *extra]
+def _run_solve(cache: str | None, extra: list[str], task: str = "billiards"):
+    env = dict(os.environ)
+    if cache is not None:
+        env.update(JAX_COMPILATION_CACHE_DIR=os.path.join(cache, "jax"),
+                   MJSTAMP_TRACE_CACHE=os.path.join(cache, "trace"))
+    cmd = [sys.executable, "-m", "mjstamp.cli", "solve", task, "--json", "--quiet", *extra]
     t0 = time.perf_counter()
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -60,13 +73,64 @@ def _rollout_seconds_per_iteration(particles: int) -> tuple[float, float]:
     return out[0], out[1]
 
 
+def _pushing(max_pushes: list[int], as_json: bool) -> dict:
+    rows = []
+    for k in max_pushes:
+        wall, out = _run_solve(None, ["--max-pushes", str(k)], task="pushing")
+        it = out["iteration_seconds"]
+        iters = out["stamp"]
+        steady = iters["svgd_iters"] * it["svgd_median"] + iters["sgd_iters"] * it["sgd_median"]
+        row = {
+            "max_pushes": k,
+            "dimension": 7 * k,
+            "horizon": out["config"]["max_pushes"] * (out["config"]["approach_steps"]
+                                                     + out["config"]["push_steps"])
+            + out["config"]["settle_steps"],
+            "particles": out["particles"],
+            "process_wall_s": wall,
+            "solve_wall_time_s": out["wall_time_s"],
+            "timings": out["timings"],
+            "iteration_seconds": it,
+            "svgd_iters": iters["svgd_iters"],
+            "sgd_iters": iters["sgd_iters"],
+            "stamp_steady_s": steady,
+            "returned_plans": out["returned_plans"],
+            "verified_fraction": out["verified_fraction"],
+            "distinct_verified_task_plans": out["distinct_verified_task_plans"],
+            "task_plans": [r["task_plan"] for r in out["task_plans"]],
+        }
+        rows.append(row)
+        if not as_json:
+            print(json.dumps(row, indent=1), flush=True)
+    by_k = {r["max_pushes"]: r for r in rows}
+    ratios = {}
+    if 1 in by_k and 5 in by_k:
+        ratios = {
+            "stamp_steady_s_k5_over_k1": by_k[5]["stamp_steady_s"] / by_k[1]["stamp_steady_s"],
+            "solve_wall_time_s_k5_over_k1": (by_k[5]["solve_wall_time_s"]
+                                             / by_k[1]["solve_wall_time_s"]),
+        }
+    return {"rows": rows, **ratios}
+
+
 def main() -> None:
     """Runs the benchmark and prints its figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--task", choices=("billiards", "pushing"), default="billiards")
     parser.add_argument("--particles", type=int, nargs="*", default=[None],
-                        help="particle counts (default: the task's default)")
+                        help="billiards: particle counts (default: the task's default)")
+    parser.add_argument("--max-pushes", type=int, nargs="*", default=[1, 2, 3, 4, 5],
+                        help="pushing: values of K")
     args = parser.parse_args()
+    if args.task == "pushing":
+        import jax
+
+        result = {"benchmark": "solve", "task": "pushing", "device": str(jax.devices()[0]),
+                  "cpus": os.cpu_count(), **_pushing(args.max_pushes, args.json)}
+        if args.json:
+            print(json.dumps(result))
+        return
     rows = []
     for n in args.particles:
         extra = [] if n is None else ["--particles", str(n)]

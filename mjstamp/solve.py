@@ -90,6 +90,7 @@ class SolveResult:
                 }
                 for i in np.flatnonzero(self.returned)
             ],
+            "iteration_seconds": _iteration_seconds(self.diagnostics),
             "stamp": {
                 "svgd_iters": self.stamp.svgd_iters,
                 "sgd_iters": self.stamp.sgd_iters,
@@ -115,7 +116,7 @@ class SolveResult:
             "task_plan": np.asarray(self.verified.plan, dtype=str),
             "predicted_task_plan": np.asarray(self.predicted.plan, dtype=str),
             "logdensity_mean": d.logdensity_mean, "logdensity_max": d.logdensity_max,
-            "phase": d.phase, "displacement": d.displacement,
+            "phase": d.phase, "displacement": d.displacement, "step_seconds": d.step_seconds,
         }
         idx = np.flatnonzero(self.returned)
         qpos0, qvel0, _ = self.task.inputs(self.task.unpack(self.theta[idx]), xp=np)
@@ -130,6 +131,16 @@ class SolveResult:
             "timestep": np.float64(self.task.scene.m.opt.timestep),
         }
         return {"particles": particles, "trajectories": trajectories}
+
+
+def _iteration_seconds(d: svgd.StampDiagnostics) -> dict[str, float | None]:
+    """Per phase: the first iteration (compile or cache load included) and the median."""
+    out: dict[str, float | None] = {}
+    for phase, name in ((svgd.PHASE_SVGD, "svgd"), (svgd.PHASE_SGD, "sgd")):
+        t = d.step_seconds[d.phase == phase]
+        out[f"{name}_first"] = float(t[0]) if len(t) else None
+        out[f"{name}_median"] = float(np.median(t[1:])) if len(t) > 1 else None
+    return out
 
 
 def _jit(fn, task, name: str, *example):

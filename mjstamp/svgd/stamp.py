@@ -15,6 +15,7 @@ import dataclasses
 import math
 import numbers
 import sys
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -144,6 +145,8 @@ class StampDiagnostics(NamedTuple):
         default ones do), NaN otherwise.
       displacement: (T,) mean ‖Δθ_i‖ of the iteration: the step actually taken.
       n_nonfinite: (T,) particles with a NaN/inf log ρ or gradient.
+      step_seconds: (T,) wall time of each iteration; the first of each phase
+        includes compiling its step (or loading it from the caches).
     """
 
     logdensity_mean: np.ndarray
@@ -153,6 +156,7 @@ class StampDiagnostics(NamedTuple):
     learning_rate: np.ndarray
     displacement: np.ndarray
     n_nonfinite: np.ndarray
+    step_seconds: np.ndarray
 
 
 class StampResult(NamedTuple):
@@ -320,6 +324,7 @@ def run_stamp(
             step = jit(step, state, key, "svgd" if phase == PHASE_SVGD else "sgd")
         means, moves = [], []
         for _ in range(max_iters):
+            started = time.perf_counter()
             key, sub = jax.random.split(key)
             state, info = step(state, sub)
             rec = jax.device_get(
@@ -331,7 +336,7 @@ def run_stamp(
                     info.displacement,
                     info.n_nonfinite,
                 )
-            )
+            ) + (time.perf_counter() - started,)
             if not records and int(rec[5]) == n:
                 raise ValueError(
                     f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {n} "
@@ -408,4 +413,5 @@ def _assemble(records: list[tuple], phases: list[int]) -> StampDiagnostics:
         learning_rate=column(3),
         displacement=column(4),
         n_nonfinite=column(5, int),
+        step_seconds=column(6),
     )
