@@ -145,3 +145,28 @@ def test_cli_fits_a_skill_bank_file(tmp_path, capsys):
     assert max(e["rms_rel"] for e in report["errors"].values()) <= 0.02
     task, _ = tasks.load("pushing", skill_bank=str(out))  # a fresh file is current
     assert task.bank.fingerprint == report["fingerprint"]
+
+
+def test_push_skills_reach_any_goal_in_the_workspace(task):
+    """Each fitted skill ends within 1% of the workspace size of any goal in it."""
+    import jax
+
+    from mjstamp.skills import dmp
+
+    config = tasks.default_config("pushing")
+    low = np.array([config["x_min"], config["y_min"], 0.0])
+    high = np.array([config["x_max"], config["y_max"], 0.0])
+    size = np.linalg.norm(high - low)
+    rng = np.random.default_rng(0)
+    starts = rng.uniform(low, high, (64, 3))
+    goals = rng.uniform(low, high, (64, 3))
+    setup = task.setup
+    for name, skill in task.bank.skills.items():
+        steps = setup.approach_steps if name.endswith("approach") else setup.push_steps
+
+        def end(a, b, skill=skill, steps=steps):
+            return dmp.rollout(skill, a, b, steps=steps, duration=steps * setup.dt)[0][-1]
+
+        reached = np.asarray(jax.vmap(end)(jnp.asarray(starts), jnp.asarray(goals)))
+        worst = np.linalg.norm(reached - goals, axis=1).max()
+        assert worst <= 0.01 * size, (name, worst, size)

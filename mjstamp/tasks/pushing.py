@@ -121,7 +121,7 @@ def manhattan_detour(goal_xy, start_xy, target_xy):
 TOP = "top"
 
 
-def pushed_from_above(setup: skills.PushSetup, scene):
+def pushed_from_above(setup: skills.PushSetup):
     """Cost: the share of steps the pusher presses on the block's top face.
 
     A pusher lowered onto the block (where a plan expected the block elsewhere)
@@ -139,7 +139,7 @@ def pushed_from_above(setup: skills.PushSetup, scene):
     return cost
 
 
-def ends_in_goal_pushing_sides(setup: skills.PushSetup, scene, actions):
+def ends_in_goal_pushing_sides(actions):
     """Success: the block ends in the goal region and no push was from above."""
     in_goal = costs.ends_in("block", "goal")
 
@@ -265,9 +265,9 @@ def make(config: dict) -> Task:
               weight=config["target_weight"])
     task.cost("subgoals", subgoals, weight=config["subgoal_weight"])
     task.prior("trajectory", trajectory, weight=config["trajectory_weight"])
-    task.cost("from_above", pushed_from_above(setup, scene), weight=config["above_weight"])
+    task.cost("from_above", pushed_from_above(setup), weight=config["above_weight"])
     sides = executed_sides(setup, scene, pushes=K)
-    task.success(ends_in_goal_pushing_sides(setup, scene, sides))
+    task.success(ends_in_goal_pushing_sides(sides))
     task.actions_from(sides)
     task.display(trace=("block", "pusher"), force=[("pusher", "block")])
     task.setup = setup
