@@ -103,27 +103,9 @@ def _cmd_tasks(args) -> int:
 
 
 def _print_table(summary: dict) -> None:
-    rows = summary["task_plans"]
-    print(f"task {summary['task']}: {summary['particles']} particles, "
-          f"{summary['wall_time_s']:.1f} s; {summary['returned_plans']} plans returned, "
-          f"{summary['verified_fraction']:.0%} verified in MuJoCo C")
-    header = ("task plan", "plans found", "verified", "best cost", "verified share")
-    body = [
-        (r["task_plan"], str(r["plans"]), str(r["verified"]),
-         "-" if r["best_cost"] is None else f"{r['best_cost']:.3g}",
-         f"{r['verified_share']:.0%}")
-        for r in rows
-    ]
-    widths = [max(len(h), *(len(b[i]) for b in body)) if body else len(h)
-              for i, h in enumerate(header)]
-    line = "  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))
-    print(line)
-    print("-" * len(line))
-    for b in body:
-        print("  ".join(c.ljust(w) for c, w in zip(b, widths, strict=True)))
-    codes = (f" (symbol codes: {summary['distinct_verified_codes']})"
-             if summary["declaration"]["symbols"] else "")
-    print(f"distinct verified task plans: {summary['distinct_verified_task_plans']}{codes}")
+    from mjstamp.plans import format_table
+
+    print(format_table(summary))
     if "coverage" in summary:
         detail = summary["coverage_detail"]
         print(f"coverage: {summary['coverage']:.0%} of the {len(detail['feasible'])} task plans "

@@ -20,6 +20,7 @@ import functools
 import io
 import math
 import sys
+import textwrap
 from pathlib import Path
 
 import jax
@@ -149,9 +150,10 @@ def histogram_figure(result) -> Figure:
         f"{n} particles, seed {result.config.get('seed', 0)}"
     )
     symbols = ", ".join(c.name for c in task.contacts)
+    # Wrapped: with four symbols the label is wider than a narrow figure.
     ax.set_xlabel(
-        f"task plan (bits: {symbols}; then actions and success label)" if symbols
-        else "task plan"
+        textwrap.fill(f"task plan (bits: {symbols}; then actions and success label)", 60)
+        if symbols else "task plan"
     )
     ax.set_ylabel("plans")
     if not rows:

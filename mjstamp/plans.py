@@ -216,6 +216,41 @@ def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: 
     return out
 
 
+def format_table(summary: dict, *, markdown: bool = False) -> str:
+    """The table of task plans `mjstamp solve` prints, from a solve's summary.
+
+    Args:
+      summary: `SolveResult.summary()` or the contents of plans.json.
+      markdown: a Markdown table (for notebooks) instead of aligned text.
+
+    Returns:
+      The table, a header line above it and a line of totals below it.
+    """
+    header = ("task plan", "plans found", "verified", "best cost", "verified share")
+    body = [
+        (r["task_plan"], str(r["plans"]), str(r["verified"]),
+         "-" if r["best_cost"] is None else f"{r['best_cost']:.3g}",
+         f"{r['verified_share']:.0%}")
+        for r in summary["task_plans"]
+    ]
+    title = (f"task {summary['task']}: {summary['particles']} particles, "
+             f"{summary['wall_time_s']:.1f} s; {summary['returned_plans']} plans returned, "
+             f"{summary['verified_fraction']:.0%} verified in MuJoCo C")
+    codes = (f" (symbol codes: {summary['distinct_verified_codes']})"
+             if summary["declaration"]["symbols"] else "")
+    footer = f"distinct verified task plans: {summary['distinct_verified_task_plans']}{codes}"
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 1)]
+        lines += ["| `" + b[0] + "` | " + " | ".join(b[1:]) + " |" for b in body]
+        return "\n\n".join([title, "\n".join(lines), footer])
+    widths = [max(len(h), *(len(b[i]) for b in body)) if body else len(h)
+              for i, h in enumerate(header)]
+    line = "  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))
+    rows = ["  ".join(c.ljust(w) for c, w in zip(b, widths, strict=True)).rstrip()
+            for b in body]
+    return "\n".join([title, line, "-" * len(line), *rows, footer])
+
+
 # ----------------------------------------------------------------------------
 # Saving and loading.
 

@@ -168,3 +168,29 @@ def test_solve_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and expected in err[0], (argv, err)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_format_table_text_and_markdown():
+    summary = {
+        "task": "t", "particles": 8, "wall_time_s": 1.25, "returned_plans": 3,
+        "verified_fraction": 2 / 3, "distinct_verified_task_plans": 1,
+        "distinct_verified_codes": 1, "declaration": {"symbols": ["a"]},
+        "task_plans": [
+            {"task_plan": "1-goal", "plans": 2, "verified": 2, "best_cost": 0.5,
+             "verified_share": 1.0},
+            {"task_plan": "0 (failed)", "plans": 1, "verified": 0, "best_cost": None,
+             "verified_share": 0.0},
+        ],
+    }
+    text = plans.format_table(summary).splitlines()
+    assert text[0] == ("task t: 8 particles, 1.2 s; 3 plans returned, 67% verified in "
+                       "MuJoCo C")
+    assert text[1].split() == ["task", "plan", "plans", "found", "verified", "best", "cost",
+                               "verified", "share"]
+    assert text[3].split() == ["1-goal", "2", "2", "0.5", "100%"]
+    assert text[4].split() == ["0", "(failed)", "1", "0", "-", "0%"]
+    assert text[5] == "distinct verified task plans: 1 (symbol codes: 1)"
+    md = plans.format_table(summary, markdown=True)
+    assert "| `1-goal` | 2 | 2 | 0.5 | 100% |" in md.splitlines()
+    summary["declaration"]["symbols"] = []
+    assert plans.format_table(summary).endswith("distinct verified task plans: 1")
