@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError
+from mjstamp.fileio import write_atomic
 from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.rollout import replay as replay_c
 
@@ -266,22 +267,6 @@ def check_writable(out: str | os.PathLike) -> Path:
     except OSError as e:
         raise MjstampError(f"--out {str(path)!r} is not writable: {e.strerror or e}") from None
     return path
-
-
-def write_atomic(path: Path, write) -> None:
-    """Writes a file via a temporary sibling and os.replace: never half-written."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual file mode
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def save(

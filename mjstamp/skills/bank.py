@@ -32,7 +32,6 @@ import dataclasses
 import json
 import os
 import sys
-import tempfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -40,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.fileio import write_atomic
 from mjstamp.skills.dmp import DMP, DMPConfig
 
 __all__ = [
@@ -132,7 +132,7 @@ def save(bank: SkillBank, path: str | os.PathLike) -> Path:
         format=np.array(FORMAT), version=np.array(FORMAT_VERSION), header=np.array(header)
     )
     path.parent.mkdir(parents=True, exist_ok=True)
-    _write_atomic(path, lambda f: np.savez_compressed(f, **arrays))
+    write_atomic(path, lambda f: np.savez_compressed(f, **arrays))
     return path
 
 
@@ -248,17 +248,3 @@ def _stderr(line: str) -> None:
     print(line, file=sys.stderr)
 
 
-def _write_atomic(path: Path, write) -> None:
-    """Writes via a temporary sibling and os.replace: a reader never sees half a bank."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the usual file mode
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
