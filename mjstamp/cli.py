@@ -194,9 +194,10 @@ def _cmd_skills(args) -> int:
     scene = Scene.shipped("pushing")
     setup = pushing.PushSetup.from_scene(scene)
     say = (lambda msg: print(f"[skills] {msg}", file=sys.stderr)) if not args.quiet else None
-    bank = pushing.fit_bank(scene, setup, progress=say)
+    demos = pushing.record_all(scene, setup)
+    bank = pushing.fit_bank(scene, setup, demos=demos, progress=say)
     path = bank_mod.save(bank, out)
-    errors = pushing.fit_errors(scene, setup, bank)
+    errors = pushing.fit_errors(scene, setup, bank, demos=demos)
     if args.json:
         print(json.dumps({"path": str(path), "fingerprint": bank.fingerprint, "errors": errors}))
         return 0

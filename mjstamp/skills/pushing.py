@@ -277,17 +277,39 @@ def fingerprint(scene, setup: PushSetup) -> str:
     return h.hexdigest()[:16]
 
 
-def fit_bank(scene, setup: PushSetup, *, progress: Callable[[str], None] | None = None):
-    """Records the demonstrations of every side and fits its two DMPs."""
+def record_all(scene, setup: PushSetup) -> dict[str, dict[str, np.ndarray]]:
+    """{side: `record_demonstrations` of that side}, for every side."""
+    return {side: record_demonstrations(scene, setup, i) for i, side in enumerate(SIDES)}
+
+
+def fit_bank(
+    scene,
+    setup: PushSetup,
+    *,
+    demos: dict[str, dict[str, np.ndarray]] | None = None,
+    progress: Callable[[str], None] | None = None,
+):
+    """Fits each side's two DMPs to its demonstrations (recorded here unless given).
+
+    Args:
+      scene: the pushing `Scene`.
+      setup: `PushSetup`.
+      demos: `record_all`'s output, to fit (and later check) the same recordings.
+      progress: called with a line per side.
+    """
     skills = {}
     for i, side in enumerate(SIDES):
         if progress:
-            progress(f"recording and fitting the '{side}' push skill")
-        demos = record_demonstrations(scene, setup, i)
+            verb = "fitting" if demos is not None else "recording and fitting"
+            progress(f"{verb} the '{side}' push skill")
+        side_demos = (demos[side] if demos is not None
+                      else record_demonstrations(scene, setup, i))
         skills[f"{side}/approach"] = dmp.fit(
-            demos["approach"], setup.approach_steps * setup.dt, dmp_config()
+            side_demos["approach"], setup.approach_steps * setup.dt, dmp_config()
         )
-        skills[f"{side}/push"] = dmp.fit(demos["push"], setup.push_steps * setup.dt, dmp_config())
+        skills[f"{side}/push"] = dmp.fit(
+            side_demos["push"], setup.push_steps * setup.dt, dmp_config()
+        )
     meta = {
         "scene": scene.name,
         "setup": dataclasses.asdict(setup),
@@ -383,19 +405,25 @@ def controls(setup: PushSetup, x_ref, v_ref):
     return jnp.concatenate([x_ref - origin, v_ref], axis=-1)
 
 
-def fit_errors(scene, setup: PushSetup, bank) -> dict[str, dict[str, float]]:
+def fit_errors(scene, setup: PushSetup, bank, *, demos=None) -> dict[str, dict[str, float]]:
     """How well each skill reproduces its own demonstrations.
+
+    Args:
+      scene: the pushing `Scene`.
+      setup: `PushSetup`.
+      bank: the fitted `SkillBank`.
+      demos: `record_all`'s output; recorded here when None.
 
     Returns:
       {skill name: {"rms_rel": RMS error / extent, "end_rel": worst end-point
       error / extent}}, the extent being the largest range of the
       demonstrations along any axis.
     """
+    demos = record_all(scene, setup) if demos is None else demos
     out = {}
-    for i, side in enumerate(SIDES):
-        demos = record_demonstrations(scene, setup, i)
+    for side in SIDES:
         for part, steps in (("approach", setup.approach_steps), ("push", setup.push_steps)):
-            d = demos[part]
+            d = demos[side][part]
             skill = bank.skills[f"{side}/{part}"]
 
             def play(a, b, skill=skill, steps=steps):
