@@ -73,8 +73,9 @@ def test_options_overridden_by_mjcf_then_caller():
     assert Scene(xml).m_grad.opt.ls_iterations == 7
     assert Scene(xml, ls_iterations=2).m_grad.opt.ls_iterations == 2
     assert Scene(xml, timestep=0.005).m_grad.opt.timestep == 0.005
-    with pytest.raises(MjstampError, match="iterations=3"):
-        Scene(BALL, iterations=3)
+    assert Scene(BALL, iterations=3).m_grad.opt.iterations == 3
+    with pytest.raises(MjstampError, match="iterations=0"):
+        Scene(BALL, iterations=0)
     with pytest.raises(MjstampError, match="unknown option 'lsiter'"):
         Scene(BALL, lsiter=3)
     bad = BALL.replace(

@@ -178,6 +178,16 @@ _EDITS: dict[str, list[tuple[str, str]]] = {
             "t2 = _gs_safe_div(vv, t) - _gs_safe_div((uv + alpha * vv) * t1, tsqr)",
         ),
     ],
+    "solve": [
+        # Faithful gradients: the solver's main loop. Reverse mode cannot go through
+        # `lax.while_loop`; MJX's own `_while_loop_scan` runs the same `cond`/`body`
+        # for at most `opt.iterations` trips (no-ops once `cond` says done, as the
+        # while_loop would stop), so forward values match and AD goes through.
+        (
+            "ctx = jax.lax.while_loop(cond, body, ctx)",
+            "ctx = _while_loop_scan(cond, body, ctx, m.opt.iterations)",
+        ),
+    ],
     "_update_constraint": [
         # Culprit 4: elliptic cone, friction force direction.
         (
@@ -237,7 +247,8 @@ def patch_mjx() -> None:
     # Build everything first so a failed rewrite leaves MJX untouched.
     new = {q: _rewrite(solver, q, e) for q, e in _EDITS.items()}
     solver._linesearch = new["_linesearch"]  # pylint: disable=protected-access
-    solver._update_constraint = new["_update_constraint"]  # pylint: disable=protected-access
+    solver._update_constraint = new["_update_constraint"]
+    solver.solve = new["solve"]  # pylint: disable=protected-access
     solver._LSPoint.create = classmethod(new["_LSPoint.create"])  # pylint: disable=protected-access
     _PATCHED = True
 

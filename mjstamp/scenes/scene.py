@@ -37,10 +37,17 @@ class GradOptions:
       solver: "newton" or "cg". Newton, because with a single iteration it
         already lands at (or very near) the solution of a small contact problem,
         where CG's first step is only a steepest-descent step.
-      iterations: solver iterations. N.B. must be 1: reverse-mode AD cannot go
-        through the solver's `lax.while_loop`, which MJX uses for more.
+      iterations: solver iterations k >= 1. N.B. MJX runs more than one in a
+        `lax.while_loop`, which reverse-mode AD cannot go through; every Scene
+        applies `gradsafe.patch_mjx()`, which runs the same loop as a
+        fixed-trip `scan` (no-ops once converged), so gradients exist for any
+        k and the forward values are MJX's own. One iteration is exact only for
+        soft, frictionless contact problems; `mjstamp.scenes.fidelity`
+        measures how many a scene needs to match its own solver, and `solve`
+        calibrates it per task. Cost grows about linearly with k: under `vmap`
+        every particle runs all k trips.
       ls_iterations: line-search iterations (a `scan`, so AD goes through). A
-        few suffice for one Newton step on these small problems; each costs a
+        few suffice for a Newton step on these small problems; each costs a
         full evaluation of the constraint cost.
       timestep: integration step in seconds; None keeps the MJCF's. Contact
         softness (geom `solref`/`solimp`) always comes from the MJCF: MJX does
@@ -61,10 +68,9 @@ class GradOptions:
                 f"GradOptions.solver={self.solver!r} is not supported; valid: "
                 f"{valid_list(_SOLVERS)}"
             )
-        if self.iterations != 1:
+        if int(self.iterations) < 1:
             raise MjstampError(
-                f"GradOptions.iterations={self.iterations}: reverse-mode gradients "
-                "through MJX need exactly 1 solver iteration"
+                f"GradOptions.iterations={self.iterations} must be >= 1"
             )
         if int(self.ls_iterations) < 1:
             raise MjstampError(
@@ -332,6 +338,23 @@ class Scene:
     def initial_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The model's initial (qpos0, zero qvel), as float64 numpy arrays."""
         return self.m.qpos0.copy(), np.zeros(self.m.nv)
+
+    def with_grad_options(self, **fields) -> Scene:
+        """A scene on the same MJCF model with some `GradOptions` fields replaced.
+
+        The C model `m` (what plans are verified with) and the names are shared;
+        only the gradient model (`m_grad`, `mx`) and the compiled rollouts are
+        new. Returns `self` when nothing changes.
+        """
+        options = dataclasses.replace(self.grad_options, **fields)
+        if options == self.grad_options:
+            return self
+        other = copy.copy(self)
+        other.grad_options = options
+        other.m_grad = options.apply(self.m)
+        other.mx = cast_floats(mjx.put_model(other.m_grad), self.dtype)
+        other._rollouts = {}
+        return other
 
     def rollout_fn(self, horizon: int, **kwargs):
         """A compiled batched rollout of this scene; see `rollout.build_rollout`.
