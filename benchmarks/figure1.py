@@ -13,12 +13,21 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjstamp.svgd.mixture import component_log_densities, figure1_mixture, run_figure1
+if __package__ in (None, ""):
+    # N.B. run as a script, Python puts benchmarks/ on sys.path, not the repository root
+    # that `benchmarks.mixture` is found from.
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks.mixture import (  # noqa: E402 - after the path set-up above
+    component_log_densities,
+    figure1_mixture,
+    run_figure1,
+)
 
 COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 

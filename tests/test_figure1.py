@@ -2,13 +2,20 @@
 
 import importlib.util
 import pathlib
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjstamp.svgd.mixture import component_log_densities, figure1_mixture, run_figure1
+# The toy lives in benchmarks/ (not in the engine): import it from the repository root.
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from benchmarks.mixture import (  # noqa: E402 - after the path set-up above
+    component_log_densities,
+    figure1_mixture,
+    run_figure1,
+)
 
 MIXTURE = figure1_mixture()
 

@@ -1,6 +1,14 @@
 """mjstamp.svgd: the Stein engine (kernels, SVGD / discrete SVGD / SGD, STAMP loop).
 
-Pure JAX on any differentiable, batched log density: nothing here imports MuJoCo.
+What it is for: inference over particles on any differentiable, batched log
+density, in the manner of blackjax and optax (a state NamedTuple, `build_*`
+factories returning `step(state, key) -> (state, info)`, optax for updates).
+
+What it may import: the standard library, jax, numpy, optax, tqdm, and its own
+modules. Never `mujoco` nor `mjstamp.relax` (nor the rest of mjstamp): the engine
+knows nothing of physics or task plans, and toy densities such as Figure 1's live
+in `benchmarks/` (tests/test_svgd_imports.py checks this).
+
 A task plugs in one batched, particle-separable function (row i of every output
 depends on particle i only), called once per step on the whole batch:
 
@@ -40,6 +48,7 @@ from mjstamp.svgd.kernels import (
 from mjstamp.svgd.stamp import (
     PHASE_SGD,
     PHASE_SVGD,
+    IterationRecord,
     StampConfig,
     StampDiagnostics,
     StampResult,
@@ -60,6 +69,7 @@ from mjstamp.svgd.steps import (
 __all__ = [
     "PHASE_SGD",
     "PHASE_SVGD",
+    "IterationRecord",
     "StampConfig",
     "StampDiagnostics",
     "StampResult",

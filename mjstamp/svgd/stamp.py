@@ -30,6 +30,7 @@ from mjstamp.svgd._jacobian import JacobianMode, check_mode
 from mjstamp.svgd.kernels import Kernel
 from mjstamp.svgd.steps import (
     LogDensityFn,
+    StepInfo,
     build_dsvgd_step,
     build_sgd_step,
     build_svgd_step,
@@ -39,6 +40,7 @@ from mjstamp.svgd.steps import (
 __all__ = [
     "PHASE_SGD",
     "PHASE_SVGD",
+    "IterationRecord",
     "StampConfig",
     "StampDiagnostics",
     "StampResult",
@@ -227,6 +229,24 @@ def _default_optimizer(learning_rate) -> optax.GradientTransformation:
     return optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate)
 
 
+class IterationRecord(NamedTuple):
+    """One iteration of a run, fetched to the host: a row of `StampDiagnostics`.
+
+    A pytree (NamedTuple) built from the step's `StepInfo`; `run_stamp`
+    collects one per iteration and stacks them field by field. Fields are named
+    and mean what they do in `StampDiagnostics`, at a single iteration.
+    """
+
+    logdensity_mean: Any
+    logdensity_max: Any
+    bandwidth: Any
+    phase: Any
+    learning_rate: Any
+    displacement: Any
+    n_nonfinite: Any
+    step_seconds: Any
+
+
 def run_stamp(
     logdensity_fn: LogDensityFn,
     initial_particles: jax.Array | Callable[[jax.Array], jax.Array],
@@ -284,8 +304,35 @@ def run_stamp(
         initial_particles = initial_particles(sub)
     particles = jnp.asarray(initial_particles)
     check_particles(particles)
-    n = particles.shape[0]
 
+    (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer) = _phase_steps(
+        logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
+        svgd_optimizer, sgd_optimizer,
+    )  # fmt: skip
+    show = sys.stderr.isatty() if progress is None else bool(progress)
+    loop = _Loop(key, config, jit, n=particles.shape[0], show=show)
+    with loop.bar:  # closed on the way out, also when a phase raises
+        svgd, svgd_converged = loop.run_phase(
+            PHASE_SVGD, svgd_step, init(particles, svgd_optimizer), config.svgd_max_iters
+        )
+        svgd_iters = len(loop.rows)
+        loop.bar.total = svgd_iters + config.sgd_max_iters
+        loop.bar.refresh()
+        state, sgd_converged = loop.run_phase(
+            PHASE_SGD, sgd_step, init(svgd.particles, sgd_optimizer), config.sgd_max_iters
+        )
+    return StampResult(
+        particles=state.particles, svgd_particles=svgd.particles,
+        diagnostics=_assemble(loop.rows), svgd_iters=svgd_iters,
+        sgd_iters=len(loop.rows) - svgd_iters,
+        svgd_converged=svgd_converged, sgd_converged=sgd_converged,
+    )  # fmt: skip
+
+
+def _phase_steps(
+    logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn, svgd_optimizer, sgd_optimizer
+):
+    """((SVGD step, its optimizer), (SGD step, its optimizer)) of `run_stamp`'s arguments."""
     svgd_optimizer = svgd_optimizer or _default_optimizer(config.svgd_learning_rate)
     sgd_optimizer = sgd_optimizer or _default_optimizer(config.sgd_learning_rate)
     if log_target_fn is None:
@@ -294,124 +341,96 @@ def run_stamp(
         )
     else:
         svgd_step = build_dsvgd_step(
-            logdensity_fn,
-            log_target_fn,
-            kernel,
-            svgd_optimizer,
-            jacobian=config.jacobian,
+            logdensity_fn, log_target_fn, kernel, svgd_optimizer, jacobian=config.jacobian
         )
     sgd_step = build_sgd_step(sgd_logdensity_fn or logdensity_fn, sgd_optimizer)
+    return (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer)
 
-    show = sys.stderr.isatty() if progress is None else bool(progress)
-    bar = tqdm(
-        total=config.svgd_max_iters + config.sgd_max_iters,
-        desc="STAMP",
-        unit="it",
-        disable=not show,
-    )
-    records: list[tuple] = []
-    phases: list[int] = []
-    converged = {PHASE_SVGD: False, PHASE_SGD: False}
-    iters = {PHASE_SVGD: 0, PHASE_SGD: 0}
 
-    def run_phase(phase, step, state, max_iters):
-        nonlocal key
+class _Loop:
+    """The Python loop of `run_stamp`: one PRNG key and one list of records across phases."""
+
+    def __init__(self, key: jax.Array, config: StampConfig, jit, *, n: int, show: bool):
+        self.key = key
+        self.config = config
+        self.jit = jit
+        self.n = n
+        self.bar = tqdm(
+            total=config.svgd_max_iters + config.sgd_max_iters,
+            desc="STAMP",
+            unit="it",
+            disable=not show,
+        )
+        self.rows: list[IterationRecord] = []
+
+    def run_phase(self, phase: int, step, state, max_iters: int):
+        """Runs `step` until the convergence test passes or `max_iters`; (state, converged)."""
         if max_iters == 0:  # nothing to run: compile nothing either
-            return state
-        if jit is None:
-            step = jax.jit(step)
-        else:
-            step = jit(step, state, key, "svgd" if phase == PHASE_SVGD else "sgd")
+            return state, False
+        name = "svgd" if phase == PHASE_SVGD else "sgd"
+        step = jax.jit(step) if self.jit is None else self.jit(step, state, self.key, name)
         means, moves = [], []
-        for _ in range(max_iters):
+        for t in range(1, max_iters + 1):
             started = time.perf_counter()
-            key, sub = jax.random.split(key)
+            self.key, sub = jax.random.split(self.key)
             state, info = step(state, sub)
-            rec = jax.device_get(
-                (
-                    info.logdensity_mean,
-                    info.logdensity_max,
-                    info.bandwidth,
-                    info.learning_rate,
-                    info.displacement,
-                    info.n_nonfinite,
-                )
-            ) + (time.perf_counter() - started,)
-            if not records and int(rec[5]) == n:
+            row = _fetch(info, phase)._replace(step_seconds=time.perf_counter() - started)
+            if not self.rows and int(row.n_nonfinite) == self.n:
                 raise ValueError(
-                    f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {n} "
+                    f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {self.n} "
                     "initial particles; it must be finite for at least one"
                 )
-            records.append(rec)
-            phases.append(phase)
-            means.append(float(rec[0]))
-            moves.append(float(rec[4]))
-            iters[phase] += 1
-            bar.update(1)
-            if iters[phase] % 10 == 1:
-                bar.set_postfix(
-                    phase="SVGD" if phase == PHASE_SVGD else "SGD",
-                    logp=f"{means[-1]:.4g}",
-                )
+            self.rows.append(row)
+            means.append(float(row.logdensity_mean))
+            moves.append(float(row.displacement))
+            self.bar.update(1)
+            if t % 10 == 1:
+                self.bar.set_postfix(phase=name.upper(), logp=f"{means[-1]:.4g}")
             if has_converged(
                 means,
                 moves,
-                window=config.window,
-                rtol=config.rtol,
-                motion_tol=config.motion_tol,
-                min_iters=config.min_iters,
+                window=self.config.window,
+                rtol=self.config.rtol,
+                motion_tol=self.config.motion_tol,
+                min_iters=self.config.min_iters,
             ):
-                converged[phase] = True
-                break
-        return state
+                return state, True
+        return state, False
 
-    try:
-        state = run_phase(
-            PHASE_SVGD,
-            svgd_step,
-            init(particles, svgd_optimizer),
-            config.svgd_max_iters,
-        )
-        svgd_particles = state.particles
-        bar.total = iters[PHASE_SVGD] + config.sgd_max_iters
-        bar.refresh()
-        state = run_phase(
-            PHASE_SGD,
-            sgd_step,
-            init(svgd_particles, sgd_optimizer),
-            config.sgd_max_iters,
-        )
-    finally:
-        bar.close()
 
-    return StampResult(
-        particles=state.particles,
-        svgd_particles=svgd_particles,
-        diagnostics=_assemble(records, phases),
-        svgd_iters=iters[PHASE_SVGD],
-        sgd_iters=iters[PHASE_SGD],
-        svgd_converged=converged[PHASE_SVGD],
-        sgd_converged=converged[PHASE_SGD],
+def _fetch(info: StepInfo, phase: int) -> IterationRecord:
+    """The iteration's record from its StepInfo, on the host (waits for the step)."""
+    return jax.device_get(
+        IterationRecord(
+            logdensity_mean=info.logdensity_mean,
+            logdensity_max=info.logdensity_max,
+            bandwidth=info.bandwidth,
+            phase=phase,
+            learning_rate=info.learning_rate,
+            displacement=info.displacement,
+            n_nonfinite=info.n_nonfinite,
+            step_seconds=None,
+        )
     )
 
 
-def _assemble(records: list[tuple], phases: list[int]) -> StampDiagnostics:
-    g = max((np.size(r[2]) for r in records), default=0)
+# dtype of each StampDiagnostics column; bandwidth is stacked apart (its width g may differ
+# between phases: SGD has none).
+_COLUMN_DTYPES = {"phase": np.int8, "n_nonfinite": int}
+
+
+def _assemble(rows: list[IterationRecord]) -> StampDiagnostics:
+    """Stacks the records field by field into `StampDiagnostics` (T rows)."""
+    g = max((np.size(r.bandwidth) for r in rows), default=0)
 
     def bandwidth(r):
-        b = np.asarray(r[2], dtype=float).ravel()
+        b = np.asarray(r.bandwidth, dtype=float).ravel()
         return b if b.size == g else np.full(g, np.nan)
 
-    def column(k, dtype=float):
-        return np.array([r[k] for r in records], dtype=dtype)
-
-    return StampDiagnostics(
-        logdensity_mean=column(0),
-        logdensity_max=column(1),
-        bandwidth=np.array([bandwidth(r) for r in records]).reshape(len(records), g),
-        phase=np.array(phases, dtype=np.int8),
-        learning_rate=column(3),
-        displacement=column(4),
-        n_nonfinite=column(5, int),
-        step_seconds=column(6),
-    )
+    columns = {
+        name: np.array([getattr(r, name) for r in rows], dtype=_COLUMN_DTYPES.get(name, float))
+        for name in IterationRecord._fields
+        if name != "bandwidth"
+    }
+    bandwidths = np.array([bandwidth(r) for r in rows]).reshape(len(rows), g)
+    return StampDiagnostics(bandwidth=bandwidths, **columns)

@@ -327,17 +327,7 @@ def build_svgd_step(
     References:
       STAMP eq. (1); Algorithm 1 lines 5-6 with w_j = 1.
     """
-    kernel = rbf() if kernel is None else kernel
-    _check_builder(logdensity_fn, kernel, optimizer, jacobian)
-
-    def step(state: SVGDState, key: jax.Array) -> tuple[SVGDState, StepInfo]:
-        del key
-        phi, info = stein_direction(
-            logdensity_fn, kernel, state.particles, jacobian=jacobian
-        )
-        return _apply(optimizer, state, phi, info)
-
-    return step
+    return _build_stein_step(logdensity_fn, kernel, optimizer, jacobian)
 
 
 def build_dsvgd_step(
@@ -369,13 +359,22 @@ def build_dsvgd_step(
     References:
       STAMP eq. (3), (4); Algorithm 1 line 6.
     """
+    return _build_stein_step(
+        logdensity_fn, kernel, optimizer, jacobian, log_target_fn=log_target_fn, weighted=True
+    )
+
+
+def _build_stein_step(
+    logdensity_fn, kernel, optimizer, jacobian, *, log_target_fn=None, weighted=False
+):
+    """The step of SVGD (uniform weights) and discrete SVGD (`weighted`): φ, then optax."""
     kernel = rbf() if kernel is None else kernel
     _check_builder(logdensity_fn, kernel, optimizer, jacobian)
-    if not callable(log_target_fn):
+    if weighted and not callable(log_target_fn):
         raise ValueError(f"log_target_fn must be callable; got {log_target_fn!r}")
 
     def step(state: SVGDState, key: jax.Array) -> tuple[SVGDState, StepInfo]:
-        del key
+        del key  # deterministic; kept for the uniform step(state, key) signature
         phi, info = stein_direction(
             logdensity_fn,
             kernel,

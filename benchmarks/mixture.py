@@ -9,6 +9,10 @@ log p(Γ(a), x) at the one-hot corners. Discrete SVGD (eq. (4)) moves the
 particles with ∇ log ρ, weighted by w = ρ / p(Γ(a), x). In TAMP terms, labels are
 symbolic plans and positions are motion plans.
 
+It lives with the benchmarks, not in `mjstamp.svgd`: the engine runs on any log
+density and imports neither MuJoCo nor `mjstamp.relax`; this toy needs relax's
+Γ and Γ̃, so it is a user of the engine like any task.
+
 References:
   STAMP Figure 1 and §IV-A; eq. (3), (4); App. A (Γ, Γ̃, uniform base).
 """
@@ -22,8 +26,7 @@ import jax.numpy as jnp
 import optax
 
 from mjstamp.relax import hard_onehot, soft_onehot, uniform_base_sample
-from mjstamp.svgd.kernels import Kernel, feature_kernel, rbf
-from mjstamp.svgd.steps import StepInfo, SVGDState, build_dsvgd_step, init
+from mjstamp.svgd import Kernel, StepInfo, SVGDState, build_dsvgd_step, feature_kernel, init, rbf
 
 __all__ = [
     "LabelledMixture",
