@@ -12,6 +12,12 @@ a user's own matplotlib session.
 `plan_colors` gives each verified task plan one color, in sorted plan order,
 so that the same plan has the same color in figures of runs that found the same
 plans.
+
+The top-down view reads the poses, colours and contact forces of a C replay
+from `mjstamp.geometry`, the module the meshcat playback (`mjstamp.viz`) reads
+them from, so a PNG and the playback of the same plan show the same things.
+`plan_frames` → `plan_drawing` → `draw_topdown` are its steps, usable on any
+replay (tests draw one without a solve).
 """
 
 from __future__ import annotations
@@ -21,7 +27,9 @@ import io
 import math
 import sys
 import textwrap
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,9 +43,9 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Polygon
 from tqdm.auto import tqdm
 
-from mjstamp import plans as plans_mod
-from mjstamp import solve as solve_mod
+from mjstamp import geometry
 from mjstamp.errors import MjstampError
+from mjstamp.fileio import write_atomic
 
 DPI = 150
 FAILED_COLOR = "#b0b0b0"  # particles that are not returned, or fail in MuJoCo C
@@ -49,6 +57,8 @@ LANDSCAPE_BUDGET = 2.4e6
 # cost thousands of calls.
 LANDSCAPE_MAX_BATCHES = 400
 FORCE_FRAMES = 5  # force arrows drawn per geom pair and plan
+# How `landscape_cost` compiles: jit(fn, name, *example) -> compiled fn.
+Jit = Callable[..., Callable]
 # Low cost dark, but not black: particles' black edges must stay visible.
 _COST_CMAP = mcolors.ListedColormap(colormaps["Greys_r"](np.linspace(0.2, 1.0, 256)))
 
@@ -60,6 +70,7 @@ def save_figures(
     landscape: bool = True,
     grid: int | None = None,
     progress: bool | None = None,
+    jit: Jit | None = None,
 ) -> list[Path]:
     """Writes the figures of a solve into `out`, each PNG atomically.
 
@@ -70,6 +81,7 @@ def save_figures(
         `LANDSCAPE_BUDGET` particle-steps of MJX rollouts, ~12 s on a CPU).
       grid: landscape points per axis; None picks one within the budget.
       progress: tqdm bar over the landscape grid; None shows it on a terminal.
+      jit: compiles the landscape's cost function (see `landscape_cost`).
 
     Returns:
       Paths of the files written, in the order plans_histogram.png,
@@ -84,7 +96,8 @@ def save_figures(
     ]
     if landscape and result.task.dim == 2:
         figures.append(
-            ("landscape.png", lambda: landscape_figure(result, grid=grid, progress=progress))
+            ("landscape.png",
+             lambda: landscape_figure(result, grid=grid, progress=progress, jit=jit))
         )
     written = []
     for name, build in figures:
@@ -99,7 +112,7 @@ def _save(fig: Figure, path: Path) -> None:
     FigureCanvasAgg(fig)  # attaches itself as fig.canvas
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=DPI)
-    plans_mod.write_atomic(path, lambda f: f.write(buffer.getvalue()))
+    write_atomic(path, lambda f: f.write(buffer.getvalue()))
 
 
 # ----------------------------------------------------------------------------
@@ -237,13 +250,13 @@ def loss_figure(result) -> Figure:
 
 
 def landscape_cost(
-    task, n: int, low, high, grid: int, *, progress: bool | None = None
+    task, n: int, low, high, grid: int, *, progress: bool | None = None, jit: Jit | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The task's MJX cost C(θ) on a grid × grid lattice over a 2-D box.
 
     Batches hold `n` particles, the solve's own batch size: one compiled
-    function per task and n, which the trace and compilation caches keep
-    across runs (billiards: ~4 s to trace and compile the first time).
+    function per task, n and `jit` (billiards: ~4 s to trace and compile the
+    first time; JAX's compilation cache, and a caching `jit`, keep it across runs).
 
     Args:
       task: a `Task` with `task.dim == 2`.
@@ -252,6 +265,8 @@ def landscape_cost(
       high: (2,) upper corner.
       grid: points per axis.
       progress: tqdm bar; None shows it on a terminal.
+      jit: `jit(fn, name, *example) -> compiled fn`, e.g. one that goes through
+        `mjstamp.tracecache.cached_jit` for a registered task; None: `jax.jit`.
 
     Returns:
       xs: (grid,) first coordinate.
@@ -269,7 +284,7 @@ def landscape_cost(
     # Padding repeats the last point: one compiled shape for every batch.
     points = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)])
 
-    fn = _cost_fn(task, n)
+    fn = _cost_fn(task, n, jit)
     show = sys.stderr.isatty() if progress is None else bool(progress)
     out = []
     for start in tqdm(range(0, len(points), n), desc=f"landscape {task.name}", unit="batch",
@@ -281,16 +296,16 @@ def landscape_cost(
 
 
 @functools.lru_cache(maxsize=8)
-def _cost_fn(task, n: int):
-    """Jitted θ (n, d) -> C(θ) (n,), compiled once per task and batch size."""
+def _cost_fn(task, n: int, jit: Jit | None):
+    """Compiled θ (n, d) -> C(θ) (n,), once per task, batch size and `jit`."""
 
     def cost(theta):
         _, values = task.evaluate(theta, hard=True)  # as result.cost: actions at Γ(θ)
         return task.cost_total(values)
 
-    example = jnp.zeros((n, task.dim), task.scene.dtype)
-    # Through solve's jit: registered tasks reuse the trace cache across runs.
-    return solve_mod._jit(cost, task, f"landscape-cost n={n}", example)
+    if jit is None:
+        return jax.jit(cost)
+    return jit(cost, f"landscape-cost n={n}", jnp.zeros((n, task.dim), task.scene.dtype))
 
 
 def default_grid(task, n: int) -> int:
@@ -305,8 +320,8 @@ def default_grid(task, n: int) -> int:
     return int(np.clip(grid, 8, 400))
 
 
-def landscape_figure(result, *, grid: int | None = None,
-                     progress: bool | None = None) -> Figure:
+def landscape_figure(result, *, grid: int | None = None, progress: bool | None = None,
+                     jit: Jit | None = None) -> Figure:
     """Particles over the cost landscape: initial, end of SVGD, end of SGD (Fig. 9).
 
     Particles are colored by the task plan their final θ verifies in MuJoCo C
@@ -317,6 +332,7 @@ def landscape_figure(result, *, grid: int | None = None,
       result: a `SolveResult` of a task with 2-D θ.
       grid: points per axis of the cost grid; None: `default_grid`.
       progress: tqdm bar over the grid; None shows it on a terminal.
+      jit: compiles the cost function (see `landscape_cost`).
 
     Returns:
       The Figure (three panels, a colorbar, a legend of task plans).
@@ -330,7 +346,7 @@ def landscape_figure(result, *, grid: int | None = None,
     grid = default_grid(task, n) if grid is None else int(grid)
     if grid < 2:
         raise MjstampError(f"landscape grid={grid} must be >= 2")
-    xs, ys, cost = landscape_cost(task, n, low, high, grid, progress=progress)
+    xs, ys, cost = landscape_cost(task, n, low, high, grid, progress=progress, jit=jit)
 
     plans = particle_plans(result)
     colors = plan_colors(result)
@@ -340,14 +356,7 @@ def landscape_figure(result, *, grid: int | None = None,
     fig = Figure(figsize=(15, 5.7 + 0.25 * legend_rows), layout="constrained")
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
     finite = cost[np.isfinite(cost)]
-    positive = finite.size and finite.min() > 0
-    if positive:
-        # Costs span decades (a pocketed shot vs. a miss): log levels show both.
-        levels = np.geomspace(finite.min(), finite.max(), 25)
-        norm = mcolors.LogNorm(levels[0], levels[-1])
-    else:
-        levels = np.linspace(finite.min(), finite.max(), 25) if finite.size else 25
-        norm = None
+    positive, levels, norm = _cost_levels(finite)
     phase = np.asarray(result.diagnostics.phase)
     iters = (int(np.sum(phase == 0)), int(np.sum(phase == 1)))
     panels = (
@@ -385,6 +394,16 @@ def landscape_figure(result, *, grid: int | None = None,
                fontsize=8, title="verified task plan of the final particle (count)",
                title_fontsize=8)
     return fig
+
+
+def _cost_levels(finite: np.ndarray):
+    """(log scale?, contour levels, norm) for the finite costs of a landscape."""
+    positive = bool(finite.size and finite.min() > 0)
+    if positive:
+        # Costs span decades (a pocketed shot vs. a miss): log levels show both.
+        levels = np.geomspace(finite.min(), finite.max(), 25)
+        return positive, levels, mcolors.LogNorm(levels[0], levels[-1])
+    return positive, (np.linspace(finite.min(), finite.max(), 25) if finite.size else 25), None
 
 
 def _axis_names(task) -> list[str]:
@@ -431,7 +450,8 @@ def topdown_figure(result, *, columns: int = 4) -> Figure:
     the moving geoms at the start (faint) and at the end of the C replay, the
     paths of the bodies in `task.display_hints["trace"]` (default: every body
     with a joint), and for each geom pair (A, B) in `display_hints["force"]`
-    arrows of the contact force of A on B at a few frames.
+    arrows of the contact force of A on B at a few frames. Poses, colours and
+    forces come from `mjstamp.geometry`, as in the meshcat playback.
 
     Args:
       result: a `SolveResult`.
@@ -454,172 +474,244 @@ def topdown_figure(result, *, columns: int = 4) -> Figure:
     trace = [task.scene.body(b) for b in task.display_hints.get("trace", [])]
     if not trace:
         trace = [b for b in range(1, m.nbody) if m.body_jntnum[b] > 0]
-    forces = [(task.scene.geom(a), task.scene.geom(b))
-              for a, b in task.display_hints.get("force", [])]
-    drawings = [_plan_drawing(result, i, trace, forces) for _, i in chosen]
-    lo = np.min([d["extent"][0] for d in drawings], axis=0)
-    hi = np.max([d["extent"][1] for d in drawings], axis=0)
+    pairs = [(task.scene.geom(a), task.scene.geom(b))
+             for a, b in task.display_hints.get("force", [])]
+    drawings = [plan_drawing(m, plan_frames(result, i, pairs), trace) for _, i in chosen]
+    titles = [f"{plan}\ncost {result.cost[i]:.3g} (particle {i})" for plan, i in chosen]
+    return draw_topdown(m, drawings, titles, columns=columns,
+                        title=f"{task.name}: {subtitle}\n(top-down view of the MuJoCo C replay)")
+
+
+def plan_frames(result, i: int, pairs=()) -> geometry.Frames:
+    """Poses (and contact forces of `pairs`) at every state of particle i's C replay."""
+    task, replay = result.task, result.replay
+    qpos0, qvel0, _ = task.inputs(task.unpack(result.theta[i : i + 1]), xp=np)
+    return geometry.replay_frames(
+        task.scene.m, np.asarray(qpos0, np.float64)[0], replay.qpos[i],
+        qvel0=np.asarray(qvel0, np.float64)[0],
+        qvel=None if replay.qvel is None else replay.qvel[i],  # an MJX replay: positions only
+        ctrl=None if replay.ctrl is None else replay.ctrl[i],
+        pairs=pairs,
+    )
+
+
+class Footprint(NamedTuple):
+    """The top-down shadow of one geom or site at one pose.
+
+    Attributes:
+      kind: "geom" or "site".
+      id: its id in the model.
+      plane: a plane (table, floor), drawn as its finite extent under everything.
+      polygon: (k, 2) convex hull in xy, counter-clockwise.
+      moving: whether its body moves (is not welded to the world).
+      rgba: colour as drawn (`geometry.drawn_rgba`).
+      top: its highest z (the drawing order of static geoms).
+    """
+
+    kind: str
+    id: int
+    plane: bool
+    polygon: np.ndarray
+    moving: bool
+    rgba: tuple
+    top: float
+
+
+class Arrows(NamedTuple):
+    """The contact-force arrows of one geom pair (a, b) in a top-down panel.
+
+    Attributes:
+      pair: (a, b) geom ids: the force of a on b.
+      states: (k,) replay states drawn (up to `FORCE_FRAMES`, spread over
+        those with contact).
+      force: (k, 2) xy force at each.
+      point: (k, 2) where it acts.
+    """
+
+    pair: tuple[int, int]
+    states: np.ndarray
+    force: np.ndarray
+    point: np.ndarray
+
+
+class PlanDrawing(NamedTuple):
+    """What a top-down panel draws of one replay.
+
+    Attributes:
+      start: footprints at the first frame.
+      end: footprints at the last frame.
+      paths: {body id: (F, 2) xy path}.
+      forces: one `Arrows` per geom pair of the frames.
+      extent: ((2,) lower, (2,) upper corner) of what is drawn.
+    """
+
+    start: list[Footprint]
+    end: list[Footprint]
+    paths: dict[int, np.ndarray]
+    forces: list[Arrows]
+    extent: tuple[np.ndarray, np.ndarray]
+
+
+def plan_drawing(m, frames: geometry.Frames, trace: Sequence[int]) -> PlanDrawing:
+    """Footprints at the first and last frame, paths of `trace` bodies, force arrows.
+
+    Args:
+      m: the MjModel of the replay.
+      frames: `geometry.Frames` of the replay (every state, for whole paths).
+      trace: body ids whose paths to draw.
+    """
+    start, end = _footprints(m, frames.pose(0)), _footprints(m, frames.pose(-1))
+    paths = {b: frames.xpos[:, b, :2] for b in trace}
+    forces = [_force_arrows(pair, frames.states, frames.force[:, k], frames.point[:, k])
+              for k, pair in enumerate(frames.pairs)]
+    # Planes (tables, floors) may be far larger than where things happen: they
+    # set the extent only when nothing else does.
+    pts = [g.polygon for g in start + end if g.kind == "geom" and not g.plane]
+    pts += [s.polygon for s in start if s.kind == "site"] + list(paths.values())
+    pts = pts or [g.polygon for g in start if g.kind == "geom"] or [np.zeros((1, 2))]
+    allpts = np.concatenate(pts)
+    return PlanDrawing(start, end, paths, forces, (allpts.min(axis=0), allpts.max(axis=0)))
+
+
+def _force_arrows(pair, states: np.ndarray, force: np.ndarray, point: np.ndarray) -> Arrows:
+    """The `Arrows` of one pair at `FORCE_FRAMES` frames spread over those with contact.
+
+    Args:
+      pair: (a, b) geom ids.
+      states: (F,) state index of each frame.
+      force: (F, 3) force of a on b at every frame.
+      point: (F, 3) where it acts, NaN where the geoms do not touch.
+    """
+    touching = np.flatnonzero(np.isfinite(point).all(axis=1)
+                              & (np.linalg.norm(force[:, :2], axis=1) > 0))
+    if len(touching):
+        spread = np.linspace(0, len(touching) - 1, FORCE_FRAMES).round().astype(int)
+        touching = touching[np.unique(spread)]
+    return Arrows(pair, states[touching], force[touching, :2], point[touching, :2])
+
+
+def draw_topdown(m, drawings: Sequence[PlanDrawing], titles: Sequence[str], *, title: str,
+                 columns: int = 4) -> Figure:
+    """A figure of top-down panels, one per drawing, on one frame and one force scale.
+
+    Args:
+      m: the MjModel the drawings are of.
+      drawings: `plan_drawing`s, all with the same traced bodies and force pairs.
+      titles: one panel title per drawing.
+      title: the figure's title.
+      columns: panels per row at most.
+    """
+    trace = list(drawings[0].paths)
+    pairs = [arrows.pair for arrows in drawings[0].forces]
+    lo = np.min([d.extent[0] for d in drawings], axis=0)
+    hi = np.max([d.extent[1] for d in drawings], axis=0)
     margin = 0.03 * max(hi - lo)
     lo, hi = lo - margin, hi + margin
     # One scale for every force arrow: the largest is 15% of the scene's width.
-    fmax = max([np.max(np.linalg.norm(f[1], axis=1)) for d in drawings for f in d["forces"]
-                if len(f[1])], default=0.0)
+    fmax = max([np.max(np.linalg.norm(a.force, axis=1)) for d in drawings for a in d.forces
+                if len(a.force)], default=0.0)
     arrow_scale = 0.15 * max(hi - lo) / fmax if fmax > 0 else 0.0
+    fig, axes, cols, legend_cols = _topdown_grid(len(drawings), columns, lo, hi,
+                                                 len(trace) + 3 + len(pairs))
+    trace_colors = {b: f"C{k % 10}" for k, b in enumerate(trace)}
+    for k, (ax, panel_title, drawing) in enumerate(zip(axes, titles, drawings, strict=False)):
+        _draw_plan(ax, m, drawing, trace_colors, arrow_scale)
+        ax.set_title(panel_title, fontsize=9)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+        # Axis labels on the outer panels only: every panel has the same frame.
+        if k + cols >= len(drawings):  # no panel below
+            ax.set_xlabel("x [m]", fontsize=8)
+        if k % cols == 0:
+            ax.set_ylabel("y [m]", fontsize=8)
+    for ax in axes[len(drawings):]:
+        ax.set_axis_off()
+    fig.suptitle(title)
+    fig.legend(handles=_topdown_legend(m, trace_colors, pairs, fmax),
+               loc="outside lower center", ncols=legend_cols, fontsize=8)
+    return fig
 
-    cols = min(columns, len(chosen))
-    rows = math.ceil(len(chosen) / cols)
+
+def _topdown_grid(panels: int, columns: int, lo, hi, legend_entries: int):
+    """(figure, flat axes, columns, legend columns) sized for `panels` equal-aspect panels."""
+    cols = min(columns, panels)
+    rows = math.ceil(panels / cols)
     aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
     # Size the figure around data areas of at most 3.1 x 3.4 in, plus per panel
     # its tick labels and two-line title (~0.75 in each way), the two-line
     # suptitle and the legend: constrained layout overlaps texts when an
     # equal-aspect figure is too small for them.
     width = min(3.1, 3.4 / aspect)
-    legend_cols = min(len(trace) + 3 + len(forces), 6 if cols > 2 else 3)
-    legend_rows = math.ceil((len(trace) + 3 + len(forces)) / legend_cols)
+    legend_cols = min(legend_entries, 6 if cols > 2 else 3)
+    legend_rows = math.ceil(legend_entries / legend_cols)
     fig = Figure(figsize=(max(cols * (width + 0.75) + 0.3, 7.0),
                           rows * (width * aspect + 0.75) + 0.8 + 0.25 * legend_rows + 0.3),
                  layout="constrained")
-    axes = fig.subplots(rows, cols, squeeze=False).ravel()
-    trace_colors = {b: f"C{k % 10}" for k, b in enumerate(trace)}
-    for k, (ax, (plan, i), drawing) in enumerate(zip(axes, chosen, drawings, strict=False)):
-        _draw_plan(ax, drawing, trace_colors, arrow_scale)
-        ax.set_title(f"{plan}\ncost {result.cost[i]:.3g} (particle {i})", fontsize=9)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
-        ax.tick_params(labelsize=7)
-        # Axis labels on the outer panels only: every panel has the same frame.
-        if k + cols >= len(chosen):  # no panel below
-            ax.set_xlabel("x [m]", fontsize=8)
-        if k % cols == 0:
-            ax.set_ylabel("y [m]", fontsize=8)
-    for ax in axes[len(chosen):]:
-        ax.set_axis_off()
-    fig.suptitle(f"{task.name}: {subtitle}\n(top-down view of the MuJoCo C replay)")
-    handles = [Line2D([], [], color=trace_colors[b], lw=1.5,
+    return fig, fig.subplots(rows, cols, squeeze=False).ravel(), cols, legend_cols
+
+
+def _topdown_legend(m, trace_colors: dict, pairs, fmax: float) -> list:
+    handles = [Line2D([], [], color=color, lw=1.5,
                       label=f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b)} path")
-               for b in trace]
+               for b, color in trace_colors.items()]
     handles += [
         Line2D([], [], ls="", marker="o", mfc="white", mec="k", label="start"),
         Line2D([], [], ls="", marker="X", mfc="k", mec="k", label="end"),
         Patch(facecolor="none", edgecolor="k", ls="--", alpha=0.5, label="bodies at start"),
     ]
-    for a, b in forces:
+    for a, b in pairs:
         name_a = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, a)
         name_b = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, b)
         handles.append(Line2D([], [], color="red", lw=2,
                               label=f"force of {name_a} on {name_b} (longest {fmax:.3g} N)"))
-    fig.legend(handles=handles, loc="outside lower center", ncols=legend_cols, fontsize=8)
-    return fig
+    return handles
 
 
-def _plan_drawing(result, i: int, trace: list[int], forces: list[tuple[int, int]]) -> dict:
-    """Geometry of particle i's C replay: footprints, paths, forces, extent."""
-    task = result.task
-    m = task.scene.m
-    d = mujoco.MjData(m)
-    qpos0, qvel0, _ = task.inputs(task.unpack(result.theta[i : i + 1]), xp=np)
-    replay = result.replay
-    d.qpos[:] = np.asarray(qpos0, np.float64)[0]
-    d.qvel[:] = np.asarray(qvel0, np.float64)[0]
-    mujoco.mj_kinematics(m, d)
-    start = _footprints(m, d)
-    start_xpos = d.xpos.copy()
-    d.qpos[:] = replay.qpos[i, -1]
-    mujoco.mj_kinematics(m, d)
-    end = _footprints(m, d)
-    paths = {b: np.concatenate([start_xpos[b : b + 1, :2], replay.xpos[i, :, b, :2]])
-             for b in trace}
-    arrows = [(pair, *_contact_forces(m, replay, i, pair)) for pair in forces]
-    # Planes (tables, floors) may be far larger than where things happen: they
-    # set the extent only when nothing else does.
-    solids = [g[1] for g in start["geoms"] + end["geoms"] if g[0] != "plane"]
-    pts = solids + [s[0] for s in start["sites"]] + list(paths.values())
-    pts = pts or [g[1] for g in start["geoms"]] or [np.zeros((1, 2))]
-    allpts = np.concatenate(pts)
-    return {
-        "start": start, "end": end, "paths": paths,
-        "forces": [(pair, f, pos) for pair, pos, f in arrows],
-        "extent": (allpts.min(axis=0), allpts.max(axis=0)),
-    }
+def _gid(m, g: Footprint, prefix: str = "") -> str:
+    """The patch's id ("geom/wall", "start/geom/puck"): which element a test or SVG sees."""
+    name = mujoco.mj_id2name(m, getattr(mujoco.mjtObj, f"mjOBJ_{g.kind.upper()}"), g.id)
+    return f"{prefix}{g.kind}/{name or f'{g.kind}{g.id}'}"
 
 
-def _contact_forces(m, replay, i: int, pair: tuple[int, int]):
-    """Contact positions (k, 2) and xy forces (k, 2) of geom a on geom b, k frames.
-
-    Frames are `FORCE_FRAMES` evenly spread over the frames with contact.
-    N.B. MuJoCo's contact frame has its normal from geom1 to geom2, and
-    mj_contactForce's force (in that frame) acts on geom2: the force of geom1
-    on geom2 is frameᵀ f, and of geom2 on geom1 its negative.
-    """
-    if replay.qvel is None:  # an MJX replay holds positions only
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    a, b = pair
-    d = mujoco.MjData(m)
-    frames = []
-    for t in range(replay.qpos.shape[1]):
-        d.qpos[:] = replay.qpos[i, t]
-        d.qvel[:] = replay.qvel[i, t]
-        if replay.ctrl is not None and m.nu:
-            d.ctrl[:] = replay.ctrl[i, t]
-        mujoco.mj_forward(m, d)
-        total, where, count = np.zeros(3), np.zeros(3), 0
-        for k in range(d.ncon):
-            c = d.contact[k]
-            sign = 1.0 if (c.geom1, c.geom2) == (a, b) else (
-                -1.0 if (c.geom1, c.geom2) == (b, a) else 0.0)
-            if sign == 0.0:
-                continue
-            f = np.zeros(6)
-            mujoco.mj_contactForce(m, d, k, f)
-            total += sign * c.frame.reshape(3, 3).T @ f[:3]
-            where += c.pos
-            count += 1
-        if count and np.linalg.norm(total[:2]) > 0:
-            frames.append((where[:2] / count, total[:2]))
-    if not frames:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    pick = np.unique(np.linspace(0, len(frames) - 1, FORCE_FRAMES).round().astype(int))
-    pos = np.array([frames[k][0] for k in pick])
-    force = np.array([frames[k][1] for k in pick])
-    return pos, force
-
-
-def _draw_plan(ax, drawing: dict, trace_colors: dict, arrow_scale: float) -> None:
-    static = [g for g in drawing["start"]["geoms"] if not g[2]]
-    for kind, poly, _, (rgba, z) in sorted(static, key=lambda g: g[3][1]):
-        if kind == "plane":
+def _draw_plan(ax, m, drawing: PlanDrawing, trace_colors: dict, arrow_scale: float) -> None:
+    static = [g for g in drawing.start if g.kind == "geom" and not g.moving]
+    for g in sorted(static, key=lambda g: g.top):
+        if g.plane:
             # Tables and floors are background: paled, so that geoms of the same
             # color (MuJoCo's default gray for both) stand out on them.
-            face = (*(0.55 * np.asarray(rgba[:3]) + 0.45), rgba[3])
-            ax.add_patch(Polygon(poly, closed=True, facecolor=face, edgecolor="none",
-                                 zorder=0.5))
+            face = (*(0.55 * np.asarray(g.rgba[:3]) + 0.45), g.rgba[3])
+            ax.add_patch(Polygon(g.polygon, closed=True, facecolor=face, edgecolor="none",
+                                 zorder=0.5, gid=_gid(m, g)))
         else:
-            ax.add_patch(Polygon(poly, closed=True, facecolor=rgba,
-                                 edgecolor=_darker(rgba), lw=0.5, zorder=1 + 0.01 * z))
+            ax.add_patch(Polygon(g.polygon, closed=True, facecolor=g.rgba,
+                                 edgecolor=_darker(g.rgba), lw=0.5, zorder=1 + 0.01 * g.top,
+                                 gid=_gid(m, g)))
     # Sites on the world where they are; sites on moving bodies where they end.
-    sites = [s for s in drawing["start"]["sites"] if not s[2]]
-    sites += [s for s in drawing["end"]["sites"] if s[2]]
-    for poly, rgba, _ in sites:
-        ax.add_patch(Polygon(poly, closed=True, facecolor=rgba, edgecolor="k", lw=0.5,
-                             ls="--", zorder=1.5))
-    for _kind, poly, moving, (rgba, _) in drawing["start"]["geoms"]:
-        if moving:  # ghost at the start
-            ax.add_patch(Polygon(poly, closed=True, facecolor=(*rgba[:3], 0.25 * rgba[3]),
-                                 edgecolor="k", ls="--", lw=0.6, zorder=2))
-    for b, path in drawing["paths"].items():
+    sites = [s for s in drawing.start if s.kind == "site" and not s.moving]
+    sites += [s for s in drawing.end if s.kind == "site" and s.moving]
+    for s in sites:
+        ax.add_patch(Polygon(s.polygon, closed=True, facecolor=s.rgba, edgecolor="k", lw=0.5,
+                             ls="--", zorder=1.5, gid=_gid(m, s)))
+    for g in drawing.start:
+        if g.kind == "geom" and g.moving:  # ghost at the start
+            ax.add_patch(Polygon(g.polygon, closed=True, facecolor=(*g.rgba[:3], 0.25 * g.rgba[3]),
+                                 edgecolor="k", ls="--", lw=0.6, zorder=2,
+                                 gid=_gid(m, g, "start/")))
+    for b, path in drawing.paths.items():
         color = trace_colors[b]
         ax.plot(path[:, 0], path[:, 1], color=color, lw=1.4, zorder=4)
         ax.plot(*path[0], ls="", marker="o", mfc="white", mec=color, ms=5, zorder=5)
         ax.plot(*path[-1], ls="", marker="X", mfc=color, mec="k", mew=0.4, ms=6, zorder=5)
-    for _kind, poly, moving, (rgba, _) in drawing["end"]["geoms"]:
-        if moving:
-            ax.add_patch(Polygon(poly, closed=True, facecolor=rgba, edgecolor="k", lw=0.6,
-                                 zorder=3))
-    for _, force, pos in drawing["forces"]:
-        if len(force) and arrow_scale > 0:
-            ax.quiver(pos[:, 0], pos[:, 1], force[:, 0] * arrow_scale,
-                      force[:, 1] * arrow_scale, angles="xy", scale_units="xy", scale=1,
+    for g in drawing.end:
+        if g.kind == "geom" and g.moving:
+            ax.add_patch(Polygon(g.polygon, closed=True, facecolor=g.rgba, edgecolor="k", lw=0.6,
+                                 zorder=3, gid=_gid(m, g)))
+    for a in drawing.forces:
+        if len(a.force) and arrow_scale > 0:
+            ax.quiver(a.point[:, 0], a.point[:, 1], a.force[:, 0] * arrow_scale,
+                      a.force[:, 1] * arrow_scale, angles="xy", scale_units="xy", scale=1,
                       color="red", width=0.008, zorder=6)
 
 
@@ -627,41 +719,29 @@ def _darker(rgba) -> tuple:
     return (*(0.6 * np.asarray(rgba[:3])), rgba[3])
 
 
-def _footprints(m, d) -> dict:
-    """Footprints in xy of the visible geoms and sites at the state in `d`.
+def _footprints(m, pose) -> list[Footprint]:
+    """Footprints in xy of the shown geoms, then sites, at a pose.
 
-    Returns:
-      {"geoms": [(kind, (k, 2) polygon, moving, (rgba, top z))],
-       "sites": [((k, 2) polygon, rgba, moving)]}; kind is "plane" for planes (drawn
-      as their finite extent, under everything), else "solid".
+    Args:
+      m: the MjModel.
+      pose: a `geometry.Pose` (or an MjData after kinematics).
     """
-    geoms = []
-    for g in range(m.ngeom):
-        rgba = m.mat_rgba[m.geom_matid[g]] if m.geom_matid[g] >= 0 else m.geom_rgba[g]
-        # MuJoCo's viewer hides geom groups >= 3 by default; so do we.
-        if rgba[3] == 0 or m.geom_group[g] >= 3:
-            continue
-        world = _world_points(m, int(m.geom_type[g]), m.geom_size[g], d.geom_xpos[g],
-                              d.geom_xmat[g], g)
-        if world is None:
-            continue
-        kind = "plane" if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE else "solid"
-        moving = m.body_weldid[m.geom_bodyid[g]] != 0
-        geoms.append((kind, _hull(world[:, :2]), bool(moving),
-                      (tuple(rgba), float(world[:, 2].max()))))
-    sites = []
-    for s in range(m.nsite):
-        rgba = m.site_rgba[s]
-        if rgba[3] == 0 or m.site_group[s] >= 3:
-            continue
-        world = _world_points(m, int(m.site_type[s]), m.site_size[s], d.site_xpos[s],
-                              d.site_xmat[s], None)
-        if world is None:
-            continue
-        # Sites mark regions (pockets, goals): translucent so what lies under shows.
-        moving = m.body_weldid[m.site_bodyid[s]] != 0
-        sites.append((_hull(world[:, :2]), (*rgba[:3], min(rgba[3], 0.6)), bool(moving)))
-    return {"geoms": geoms, "sites": sites}
+    out = []
+    for kind, count in (("geom", m.ngeom), ("site", m.nsite)):
+        for i in range(count):
+            rgba = geometry.drawn_rgba(m, kind, i)
+            if rgba[3] == 0 or not geometry.shown(m, kind, i):
+                continue
+            world = _world_points(m, int(getattr(m, f"{kind}_type")[i]),
+                                  getattr(m, f"{kind}_size")[i], getattr(pose, f"{kind}_xpos")[i],
+                                  getattr(pose, f"{kind}_xmat")[i], i if kind == "geom" else None)
+            if world is None:
+                continue
+            plane = kind == "geom" and m.geom_type[i] == mujoco.mjtGeom.mjGEOM_PLANE
+            moving = m.body_weldid[getattr(m, f"{kind}_bodyid")[i]] != 0
+            out.append(Footprint(kind, i, bool(plane), _hull(world[:, :2]), bool(moving),
+                                 tuple(float(c) for c in rgba), float(world[:, 2].max())))
+    return out
 
 
 def _world_points(m, kind: int, size, pos, xmat, geom: int | None) -> np.ndarray | None:
@@ -734,14 +814,20 @@ def _hull(points: np.ndarray) -> np.ndarray:
 
 
 __all__: list[str] = [
+    "Arrows",
+    "Footprint",
+    "PlanDrawing",
     "best_verified",
     "default_grid",
+    "draw_topdown",
     "histogram_figure",
     "landscape_cost",
     "landscape_figure",
     "loss_figure",
     "particle_plans",
     "plan_colors",
+    "plan_drawing",
+    "plan_frames",
     "save_figures",
     "topdown_figure",
 ]

@@ -3,13 +3,14 @@
 import dataclasses
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
 from matplotlib.collections import PathCollection
 from matplotlib.image import imread
 
-from mjstamp import figures, plans
+from mjstamp import figures, geometry, plans
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
 from mjstamp.solve import solve
@@ -203,39 +204,42 @@ def test_contact_force_points_from_a_into_b(result):
     """A puck shot at the wall (+x) pushes it along +x; the wall pushes back."""
     task = result.task
     m = task.scene.m
-    replay = plans.simulate_c(task, np.array([[2.0, 0.0]]))
+    theta = np.array([[2.0, 0.0]])
+    shot = types.SimpleNamespace(task=task, theta=theta, replay=plans.simulate_c(task, theta))
     puck, wall = task.scene.geom("puck"), task.scene.geom("wall")
-    pos, force = figures._contact_forces(m, replay, 0, (puck, wall))
-    assert 0 < len(pos) <= figures.FORCE_FRAMES
+    frames = figures.plan_frames(shot, 0, [(puck, wall), (wall, puck)])
+    on_wall, back = figures.plan_drawing(m, frames, trace=[]).forces
+    assert on_wall.pair == (puck, wall) and 0 < len(on_wall.force) <= figures.FORCE_FRAMES
     # The wall is turned 10° about z: its normal is (cos 10°, sin 10°).
     normal = np.array([np.cos(np.radians(10)), np.sin(np.radians(10))])
+    force = on_wall.force
     np.testing.assert_allclose(force / np.linalg.norm(force, axis=1, keepdims=True),
                                np.tile(normal, (len(force), 1)), atol=1e-6)
-    assert np.all(np.abs(pos[:, 0] - 0.45) < 0.05)  # on the wall's near face
-    _, back = figures._contact_forces(m, replay, 0, (wall, puck))
-    np.testing.assert_allclose(back, -force)
+    assert np.all(np.abs(on_wall.point[:, 0] - 0.45) < 0.05)  # on the wall's near face
+    np.testing.assert_array_equal(back.states, on_wall.states)
+    np.testing.assert_allclose(back.force, -force)
 
 
 def test_footprints_of_rotated_boxes_and_balls():
     """A box turned 10° about z has its corners where they should be; balls are discs."""
-    import mujoco
-
     m = Scene(TINY, name="tiny").m
-    d = mujoco.MjData(m)
-    mujoco.mj_kinematics(m, d)
-    shapes = {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, k): k for k in range(m.ngeom)}
-    drawn = figures._footprints(m, d)
-    wall = drawn["geoms"][shapes["wall"]][1]
+    frames = geometry.replay_frames(m, m.qpos0, np.zeros((0, m.nq)))
+    drawn = {(f.kind, m.geom(f.id).name if f.kind == "geom" else m.site(f.id).name): f
+             for f in figures.plan_drawing(m, frames, trace=[]).start}
+    assert set(drawn) == {("geom", "floor"), ("geom", "wall"), ("geom", "puck"), ("site", "goal")}
+    wall = drawn["geom", "wall"].polygon
     c, s = np.cos(np.radians(10)), np.sin(np.radians(10))
     corner = np.array([0.5, 0.0]) + np.array([[c, -s], [s, c]]) @ [0.05, 1.0]
     assert len(wall) == 4 and np.min(np.linalg.norm(wall - corner, axis=1)) < 1e-9
-    puck = drawn["geoms"][shapes["puck"]][1]
-    np.testing.assert_allclose(np.linalg.norm(puck, axis=1), 0.04)
-    floor = drawn["geoms"][shapes["floor"]]
-    assert floor[0] == "plane" and np.allclose(np.abs(floor[1]), 1.0)
-    ((goal, _, moving),) = drawn["sites"]
-    assert not moving
-    np.testing.assert_allclose(np.linalg.norm(goal - [-0.3, 0.3], axis=1), 0.1)
+    puck = drawn["geom", "puck"]
+    np.testing.assert_allclose(np.linalg.norm(puck.polygon, axis=1), 0.04)
+    assert puck.moving and not drawn["geom", "wall"].moving
+    floor = drawn["geom", "floor"]
+    assert floor.plane and np.allclose(np.abs(floor.polygon), 1.0)
+    goal = drawn["site", "goal"]
+    assert not goal.moving
+    np.testing.assert_allclose(np.linalg.norm(goal.polygon - [-0.3, 0.3], axis=1), 0.1)
+    np.testing.assert_allclose(goal.rgba, [0, 0.8, 0, geometry.SITE_OPACITY])
 
 
 def test_import_leaves_matplotlib_global_state_alone():

@@ -4,11 +4,21 @@
     viz.play("results/billiards", open_browser=True)       # live meshcat viewer
     viz.write_html("results/billiards", "billiards.html")  # offline page
 
+What it is for: showing the plans of a results directory (what `mjstamp solve
+--out` wrote) in 3-D, as `mjstamp view` does; it reads saved MuJoCo C states,
+it never simulates nor plans.
+
+What it may import: mujoco, numpy, meshcat and its transport (zmq, umsgpack),
+the standard library, and of mjstamp only `geometry` (poses, colours and
+contact forces, shared with the PNG figures so the two cannot disagree),
+`plans` (the results files and their schema), `fileio` and `errors`; not the
+solver, the tasks nor `figures`.
+
 References:
   STAMP Fig. 6 (force arrows) and Fig. 7 (plan paths).
 """
 
-from mjstamp.viz.forces import contact_force
+from mjstamp.geometry import contact_force
 from mjstamp.viz.playback import (
     Playback,
     Segment,

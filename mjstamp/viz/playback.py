@@ -5,7 +5,9 @@ The plans of a results directory play one after another on one timeline
 state for a moment, and hands over to the next. While a plan plays, the paths
 of the task's `display.trace` bodies are drawn as lines and the contact force
 of each `display.force` pair as an arrow (STAMP Fig. 6). Forces are not saved:
-they are recomputed by `mj_forward` on each saved state, control and velocity.
+`mjstamp.geometry.replay_frames` reads them, with the poses, from one
+`mj_forward` per shown state (its velocity and the control of the step from it),
+as the PNG figures do.
 
 The scene and animation are a list of meshcat commands; `play` sends them to
 a meshcat server, `write_html` packs them, with meshcat's viewer script, into
@@ -40,10 +42,10 @@ from meshcat.animation import Animation, AnimationClip, AnimationTrack
 from meshcat.commands import SetAnimation, SetObject, SetTransform
 from meshcat.visualizer import ViewerWindow
 
+from mjstamp import geometry
 from mjstamp.errors import MjstampError, valid_list
-from mjstamp.plans import write_atomic
+from mjstamp.fileio import write_atomic
 from mjstamp.viz import scene as scene_mod
-from mjstamp.viz.forces import contact_force
 from mjstamp.viz.results import Results, load_results, select_plans
 
 FORCE_COLOR = 0xFF8C00  # orange: stands out on the grey and green tables of the tasks
@@ -133,52 +135,20 @@ class ServerUnavailable(MjstampError):
 # Replaying saved states.
 
 
-def _states(results: Results, row: int, stride: int):
-    """Saved states of one plan: frame indices (F,), qpos (T+1, nq), qvel, ctrl."""
+def _frames(m: mujoco.MjModel, results: Results, row: int, stride: int, pairs) -> geometry.Frames:
+    """Poses and contact forces of one plan at every `stride`-th saved state and the last."""
     tr = results.trajectories
-    qpos = np.concatenate([tr["qpos0"][row][None], tr["qpos"][row]])
-    qvel = None
-    if "qvel0" in tr and "qvel" in tr:
-        qvel = np.concatenate([tr["qvel0"][row][None], tr["qvel"][row]])
-    ctrl = tr["ctrl"][row] if "ctrl" in tr and tr["ctrl"].shape[-1] > 0 else None
-    idx = list(range(0, len(qpos), stride))
-    if idx[-1] != len(qpos) - 1:
-        idx.append(len(qpos) - 1)  # always show where the plan ends
-    return np.asarray(idx), qpos, qvel, ctrl
-
-
-def _replay(m: mujoco.MjModel, results: Results, row: int, stride: int, pairs):
-    """Body poses and contact forces of one plan at every shown frame.
-
-    Returns:
-      xpos: (F, nbody, 3); xquat: (F, nbody, 4) wxyz;
-      force: (F, npairs, 3) force on the second geom of each pair;
-      point: (F, npairs, 3) where it acts (NaN where the geoms do not touch).
-    """
-    idx, qpos, qvel, ctrl = _states(results, row, stride)
-    d = mujoco.MjData(m)
-    n = len(idx)
-    xpos, xquat = np.zeros((n, m.nbody, 3)), np.zeros((n, m.nbody, 4))
-    force = np.zeros((n, len(pairs), 3))
-    point = np.full((n, len(pairs), 3), np.nan)
-    for f, t in enumerate(idx):
-        d.qpos[:] = qpos[t]
-        if pairs:
-            # N.B. the force at state t is the one acting over step t + 1, which
-            # applies ctrl[t]; the last state reuses the last control.
-            if qvel is not None:
-                d.qvel[:] = qvel[t]
-            if ctrl is not None:
-                d.ctrl[:] = ctrl[min(t, len(ctrl) - 1)]
-            mujoco.mj_forward(m, d)
-            for k, (a, b) in enumerate(pairs):
-                force[f, k], p = contact_force(m, d, a, b)
-                if p is not None:
-                    point[f, k] = p
-        else:
-            mujoco.mj_kinematics(m, d)
-        xpos[f], xquat[f] = d.xpos, d.xquat
-    return xpos, xquat, force, point
+    last = len(tr["qpos"][row])  # states 0..T: the initial one, then after each step
+    idx = list(range(0, last + 1, stride))
+    if idx[-1] != last:
+        idx.append(last)  # always show where the plan ends
+    return geometry.replay_frames(
+        m, tr["qpos0"][row], tr["qpos"][row],
+        qvel0=tr["qvel0"][row] if "qvel0" in tr else None,
+        qvel=tr["qvel"][row] if "qvel" in tr else None,
+        ctrl=tr["ctrl"][row] if "ctrl" in tr else None,
+        pairs=pairs, states=idx,
+    )
 
 
 # ----------------------------------------------------------------------------
@@ -258,7 +228,7 @@ def _resolve_traces(m: mujoco.MjModel, results: Results) -> list[int]:
 
 def _trace_color(m: mujoco.MjModel, b: int) -> int:
     geoms = np.flatnonzero(m.geom_bodyid == b)
-    return scene_mod.hex_color(scene_mod.rgba_of(m, "geom", int(geoms[0]))) if len(
+    return scene_mod.hex_color(geometry.drawn_rgba(m, "geom", int(geoms[0]))) if len(
         geoms) else FORCE_COLOR
 
 
@@ -286,96 +256,131 @@ def build_playback(
     dt = results.timestep
     stride = max(1, math.ceil(1.0 / (dt * max_fps)))
     fps = 1.0 / (dt * stride)
-    hold_frames = max(1, round(hold * fps))
     pairs = _resolve_pairs(m, results)
     traces = _resolve_traces(m, results)
-    moving = [b for b in range(1, m.nbody) if m.body_weldid[b] != 0]
-
-    replays = [_replay(m, results, results.row(int(e["particle"])), stride, pairs)
+    replays = [_frames(m, results, results.row(int(e["particle"])), stride, pairs)
                for e in entries]
-    first_qpos = results.trajectories["qpos0"][results.row(int(entries[0]["particle"]))]
-    commands = scene_mod.scene_commands(m, first_qpos)
-    d = mujoco.MjData(m)
-    d.qpos[:] = first_qpos
-    mujoco.mj_kinematics(m, d)
-    _, radius = scene_mod.scene_bounds(m, d)
-    magnitudes = np.concatenate([np.linalg.norm(r[2], axis=-1).ravel() for r in replays])
+    first = replays[0].pose(0)
+    commands = scene_mod.scene_commands(m, pose=first)
+    _, radius = scene_mod.scene_bounds(m, first)
+    magnitudes = np.concatenate([np.linalg.norm(r.force, axis=-1).ravel() for r in replays])
     magnitudes = magnitudes[magnitudes > 0]
     force_scale = None
     if pairs and len(magnitudes):
         force_scale = ARROW_FRACTION * radius / float(np.percentile(magnitudes, 90))
-    max_length = ARROW_CAP * ARROW_FRACTION * radius
 
-    bodies = {b: _Tracks() for b in moving}
-    arrows = {k: _Tracks() for k in range(len(pairs))}
-    shown = {k: _Tracks() for k in range(len(entries))}
-    segments, start = [], 0
-    for k, (entry, (xpos, xquat, force, point)) in enumerate(zip(entries, replays, strict=True)):
-        n = len(xpos)
-        frames = list(range(start, start + n)) + [start + n - 1 + hold_frames]
-        states = list(range(n)) + [n - 1]
-        for b in moving:
-            for f, s in zip(frames, states, strict=True):
-                bodies[b].key(f, "position", "vector3", [float(x) for x in xpos[s, b]])
-                bodies[b].key(f, "quaternion", "quaternion", _js_quat(xquat[s, b]))
-        for p in range(len(pairs)):
-            last_pos, last_q = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]
-            for f, s in zip(frames, states, strict=True):
-                mag = float(np.linalg.norm(force[s, p]))
-                scale = [1e-6] * 3  # no contact: shrink the arrow to nothing, where it was
-                if force_scale is not None and mag > 0.0 and not np.isnan(point[s, p]).any():
-                    length = min(mag * force_scale, max_length)
-                    u = force[s, p] / mag
-                    # The tip touches the contact point: the arrow pushes on b from a's side.
-                    last_pos = [float(x) for x in point[s, p] - length * u]
-                    last_q = _js_quat(_quat_y_to(u))
-                    scale = [length] * 3
-                arrows[p].key(f, "position", "vector3", last_pos)
-                arrows[p].key(f, "quaternion", "quaternion", last_q)
-                arrows[p].key(f, "scale", "vector3", scale)
-        group = scene_mod.path_of("plans", f"{k:02d}")
-        for b in traces:
-            line = xpos[:, b, :].T.astype(np.float32)  # (3, F)
-            commands.append(SetObject(
-                mg.Line(mg.PointsGeometry(line), mg.LineBasicMaterial(color=_trace_color(m, b))),
-                path=group.append(f"trace/{scene_mod.body_name(m, b)}"),
-            ))
-        if len(entries) > 1:
-            for j in range(len(entries)):
-                shown[j].key(start, "visible", "bool", j == k)
+    timeline = _Timeline(m, pairs, len(entries), force_scale, ARROW_CAP * ARROW_FRACTION * radius)
+    segments = []
+    for k, (entry, frames) in enumerate(zip(entries, replays, strict=True)):
+        start, end = timeline.add(k, frames, hold_frames=max(1, round(hold * fps)))
+        commands += _trace_lines(m, k, frames, traces)
         segments.append(Segment(
             particle=int(entry["particle"]), task_plan=str(entry["task_plan"]),
             verified=bool(entry["verified"]), cost=float(entry["cost"]),
-            start=start / fps, end=(start + n - 1) / fps,
+            start=start / fps, end=end / fps,
         ))
-        start = frames[-1] + 1
-    last = start - 1
-
-    for a, b in pairs:
-        base = scene_mod.path_of("forces", f"{m.geom(a).name}_on_{m.geom(b).name}")
-        for name, geometry, offset in _arrow():
-            path = base.append(name)
-            commands.append(SetObject(
-                mg.Mesh(geometry, mg.MeshPhongMaterial(color=FORCE_COLOR)), path=path))
-            commands.append(SetTransform(offset, path))
-        commands.append(SetTransform(np.diag([1e-6, 1e-6, 1e-6, 1.0]), base))
-    animation = Animation(default_framerate=fps)
-    for b, tracks in bodies.items():
-        animation.clips[scene_mod.body_path(m, b)] = tracks.clip(fps, last)
-    for p, tracks in arrows.items():
-        a, b = pairs[p]
-        path = scene_mod.path_of("forces", f"{m.geom(a).name}_on_{m.geom(b).name}")
-        animation.clips[path] = tracks.clip(fps, last)
-    for k, tracks in shown.items():
-        if tracks.tracks:
-            animation.clips[scene_mod.path_of("plans", f"{k:02d}")] = tracks.clip(fps, last)
-    if animation.clips:
-        # N.B. repetitions=inf (a msgpack double) is three.js's own "loop forever".
-        commands.append(SetAnimation(animation, play=True,
-                                     repetitions=math.inf if loop else 1))
+    commands += _arrow_objects(m, pairs)
+    commands += timeline.commands(fps, loop=loop)
     names = ", ".join(f"{m.geom(a).name} on {m.geom(b).name}" for a, b in pairs)
     return Playback(commands=commands, segments=segments, force_scale=force_scale,
                     force_names=names)
+
+
+def _force_path(m: mujoco.MjModel, pair: tuple[int, int]):
+    a, b = pair
+    return scene_mod.path_of("forces", f"{m.geom(a).name}_on_{m.geom(b).name}")
+
+
+class _Timeline:
+    """Keyframes of the moving bodies, the force arrows and which plan shows, plan by plan."""
+
+    def __init__(self, m: mujoco.MjModel, pairs, plans: int, force_scale: float | None,
+                 max_length: float):
+        self.m = m
+        self.pairs = pairs
+        self.force_scale = force_scale
+        self.max_length = max_length
+        self.bodies = {b: _Tracks() for b in range(1, m.nbody) if m.body_weldid[b] != 0}
+        self.arrows = {k: _Tracks() for k in range(len(pairs))}
+        self.shown = {k: _Tracks() for k in range(plans)}
+        self.plans = plans
+        self.next = 0  # first frame of the next plan
+
+    def add(self, k: int, frames: geometry.Frames, *, hold_frames: int) -> tuple[int, int]:
+        """Keys plan k's frames, then holds its last one; (first, last moving frame)."""
+        start, n = self.next, len(frames.states)
+        keys = list(range(start, start + n)) + [start + n - 1 + hold_frames]
+        states = list(range(n)) + [n - 1]
+        for b, tracks in self.bodies.items():
+            for f, s in zip(keys, states, strict=True):
+                tracks.key(f, "position", "vector3", [float(x) for x in frames.xpos[s, b]])
+                tracks.key(f, "quaternion", "quaternion", _js_quat(frames.xquat[s, b]))
+        for p, tracks in self.arrows.items():
+            self._key_arrow(tracks, keys, frames.force[states, p], frames.point[states, p])
+        if self.plans > 1:
+            for j, tracks in self.shown.items():
+                tracks.key(start, "visible", "bool", j == k)
+        self.next = keys[-1] + 1
+        return start, start + n - 1
+
+    def _key_arrow(self, tracks: _Tracks, keys, force: np.ndarray, point: np.ndarray) -> None:
+        last_pos, last_q = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]
+        for f, vec, at in zip(keys, force, point, strict=True):
+            mag = float(np.linalg.norm(vec))
+            scale = [1e-6] * 3  # no contact: shrink the arrow to nothing, where it was
+            if self.force_scale is not None and mag > 0.0 and not np.isnan(at).any():
+                length = min(mag * self.force_scale, self.max_length)
+                u = vec / mag
+                # The tip touches the contact point: the arrow pushes on b from a's side.
+                last_pos = [float(x) for x in at - length * u]
+                last_q = _js_quat(_quat_y_to(u))
+                scale = [length] * 3
+            tracks.key(f, "position", "vector3", last_pos)
+            tracks.key(f, "quaternion", "quaternion", last_q)
+            tracks.key(f, "scale", "vector3", scale)
+
+    def commands(self, fps: float, *, loop: bool) -> list:
+        """The SetAnimation of every track (none when nothing moves)."""
+        last = self.next - 1
+        animation = Animation(default_framerate=fps)
+        for b, tracks in self.bodies.items():
+            animation.clips[scene_mod.body_path(self.m, b)] = tracks.clip(fps, last)
+        for p, tracks in self.arrows.items():
+            animation.clips[_force_path(self.m, self.pairs[p])] = tracks.clip(fps, last)
+        for k, tracks in self.shown.items():
+            if tracks.tracks:
+                animation.clips[scene_mod.path_of("plans", f"{k:02d}")] = tracks.clip(fps, last)
+        if not animation.clips:
+            return []
+        # N.B. repetitions=inf (a msgpack double) is three.js's own "loop forever".
+        return [SetAnimation(animation, play=True, repetitions=math.inf if loop else 1)]
+
+
+def _trace_lines(m: mujoco.MjModel, k: int, frames: geometry.Frames, traces) -> list:
+    """Plan k's paths of the traced bodies, as lines under plans/<k>."""
+    group = scene_mod.path_of("plans", f"{k:02d}")
+    out = []
+    for b in traces:
+        line = frames.xpos[:, b, :].T.astype(np.float32)  # (3, F)
+        out.append(SetObject(
+            mg.Line(mg.PointsGeometry(line), mg.LineBasicMaterial(color=_trace_color(m, b))),
+            path=group.append(f"trace/{scene_mod.body_name(m, b)}"),
+        ))
+    return out
+
+
+def _arrow_objects(m: mujoco.MjModel, pairs) -> list:
+    """The force arrows' meshes, shrunk to nothing until the animation scales them."""
+    out = []
+    for pair in pairs:
+        base = _force_path(m, pair)
+        for name, shape, offset in _arrow():
+            path = base.append(name)
+            out.append(SetObject(mg.Mesh(shape, mg.MeshPhongMaterial(color=FORCE_COLOR)),
+                                 path=path))
+            out.append(SetTransform(offset, path))
+        out.append(SetTransform(np.diag([1e-6, 1e-6, 1e-6, 1.0]), base))
+    return out
 
 
 # ----------------------------------------------------------------------------

@@ -6,10 +6,11 @@ commands: one group per body (`bodies/<body>`), posed in the world, and under it
 one object per geom (`geoms/<geom>`) and per site (`sites/<site>`), posed
 relative to the body exactly as MuJoCo poses them (`geom_pos`, `geom_quat`).
 Shapes follow MuJoCo's size conventions (half-sizes, radius then half-length).
-Colors follow MuJoCo's renderer: the geom's rgba, or its material's where the
-geom keeps the default rgba. Geoms and sites in groups that MuJoCo hides by
-default (3-5, e.g. collision duplicates) are drawn but start hidden; sites are
-drawn semi-transparent, since they mark regions (pockets, goals), not matter.
+Colors, opacity and which groups show come from `mjstamp.geometry` (as in the
+PNG figures): MuJoCo's renderer's colour, sites semi-transparent since they
+mark regions (pockets, goals), not matter; geoms and sites in groups that
+MuJoCo hides by default (3-5, e.g. collision duplicates) are drawn but start
+hidden.
 
 Commands are plain meshcat command objects (`SetObject`, `SetTransform`,
 `SetProperty`): the same list goes to a live meshcat server or into a
@@ -27,9 +28,29 @@ from meshcat import geometry as mg
 from meshcat.commands import SetObject, SetProperty, SetTransform
 from meshcat.path import Path
 
+from mjstamp import geometry
+from mjstamp.geometry import SITE_OPACITY
+
+__all__ = [
+    "ROOT",
+    "SITE_OPACITY",
+    "SceneObject",
+    "body_name",
+    "body_path",
+    "capsule_mesh",
+    "clean_name",
+    "hex_color",
+    "mesh_arrays",
+    "path_of",
+    "pose_matrix",
+    "scene_bounds",
+    "scene_commands",
+    "scene_objects",
+    "shape",
+    "translation",
+]
+
 ROOT = ("meshcat", "mjstamp")  # every object of ours lives under this path
-_DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0], np.float32)  # MuJoCo's geom default
-SITE_OPACITY = 0.5  # sites mark regions: draw them see-through
 
 
 def clean_name(name: str, fallback: str) -> str:
@@ -51,19 +72,6 @@ def pose_matrix(pos, quat) -> np.ndarray:
     out[:3, :3] = mat.reshape(3, 3)
     out[:3, 3] = pos
     return out
-
-
-def rgba_of(m: mujoco.MjModel, kind: str, i: int) -> np.ndarray:
-    """(4,) color of geom or site `i` as MuJoCo draws it.
-
-    A material's rgba wins only where the element keeps the default rgba
-    (MuJoCo's rule in mjv_addGeoms).
-    """
-    rgba = np.array(getattr(m, f"{kind}_rgba")[i], np.float32)
-    matid = getattr(m, f"{kind}_matid")[i]
-    if matid >= 0 and np.allclose(rgba, _DEFAULT_RGBA):
-        rgba = np.array(m.mat_rgba[matid], np.float32)
-    return rgba
 
 
 def hex_color(rgba) -> int:
@@ -220,37 +228,32 @@ class SceneObject:
 
 def scene_objects(m: mujoco.MjModel) -> list[SceneObject]:
     """Every geom and site of `m` as a `SceneObject` (types it cannot draw are skipped)."""
-    option = mujoco.MjvOption()  # MuJoCo's default group visibility
     plane_half = 2.0 * max(float(m.stat.extent), 1e-3)
     out = []
     for kind in ("geom", "site"):
         count = m.ngeom if kind == "geom" else m.nsite
-        groups = option.geomgroup if kind == "geom" else option.sitegroup
         for i in range(count):
             gtype = int(getattr(m, f"{kind}_type")[i])
             dataid = int(m.geom_dataid[i]) if kind == "geom" else -1
-            geometry = shape(m, gtype, getattr(m, f"{kind}_size")[i], dataid,
-                             plane_half=plane_half)
-            if geometry is None:
+            drawn = shape(m, gtype, getattr(m, f"{kind}_size")[i], dataid, plane_half=plane_half)
+            if drawn is None:
                 continue
             b = int(getattr(m, f"{kind}_bodyid")[i])
-            rgba = rgba_of(m, kind, i)
-            if kind == "site":
-                rgba[3] *= SITE_OPACITY
-            group = int(getattr(m, f"{kind}_group")[i])
             name = clean_name(getattr(m, kind)(i).name, f"{kind}{i}")
             out.append(SceneObject(
                 kind=kind, id=i, body=b, path=("bodies", body_name(m, b), f"{kind}s", name),
-                geometry=geometry, rgba=rgba,
+                geometry=drawn, rgba=geometry.drawn_rgba(m, kind, i),
                 transform=pose_matrix(getattr(m, f"{kind}_pos")[i],
                                       getattr(m, f"{kind}_quat")[i]),
-                visible=bool(0 <= group < len(groups) and groups[group]),
+                visible=geometry.shown(m, kind, i),
             ))
     return out
 
 
-def scene_bounds(m: mujoco.MjModel, d: mujoco.MjData) -> tuple[np.ndarray, float]:
+def scene_bounds(m: mujoco.MjModel, d) -> tuple[np.ndarray, float]:
     """(center (3,), radius) of a sphere around the drawn scene at the pose in `d`.
+
+    `d` is an MjData after kinematics or a `geometry.Pose`.
 
     N.B. not `m.stat`, nor the geoms' bounding spheres: both count a long wall
     as a ball as wide as it is long and put the camera far from a small table.
@@ -290,12 +293,15 @@ def translation(p) -> np.ndarray:
 
 
 def scene_commands(m: mujoco.MjModel, qpos: np.ndarray | None = None, *,
+                   pose: geometry.Pose | None = None,
                    view: tuple[float, float, float] = (0.0, -0.7, 1.0)) -> list:
     """The meshcat commands that draw `m` at `qpos`, with a camera on the whole scene.
 
     Args:
       m: the model.
       qpos: (nq,) pose to draw (default `m.qpos0`).
+      pose: the `geometry.Pose` to draw instead of qpos's, when it is at hand
+        (a replay's first frame): nothing is computed twice.
       view: direction from the scene centre to the camera, in world coordinates.
 
     Returns:
@@ -303,9 +309,7 @@ def scene_commands(m: mujoco.MjModel, qpos: np.ndarray | None = None, *,
       scene centre: meshcat's orbit controls turn about the world origin, so
       this centres the view on the scene without moving the camera rig.
     """
-    d = mujoco.MjData(m)
-    d.qpos[:] = m.qpos0 if qpos is None else qpos
-    mujoco.mj_kinematics(m, d)
+    d = geometry.pose(m, m.qpos0 if qpos is None else qpos) if pose is None else pose
     center, radius = scene_bounds(m, d)
     cmds: list = [
         SetProperty("visible", False, Path(("Grid",))),  # z-fights with planes at z = 0
