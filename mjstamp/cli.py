@@ -43,32 +43,82 @@ def _load_scene(name: str, **kwargs):
 
 
 def _cmd_check(args) -> int:
-    from mjstamp.scenes.check import check_scene
+    import dataclasses
 
-    scene = _load_scene(args.scene)
+    from mjstamp.scenes.check import SCENE_CHECKS, CheckSpec, check_scene
+
+    options = {} if args.iterations is None else {"iterations": args.iterations}
+    if args.iterations is not None and args.iterations < 1:
+        raise MjstampError(f"--iterations={args.iterations} must be >= 1")
+    scene = _load_scene(args.scene, **options)
+    spec = SCENE_CHECKS.get(scene.name, CheckSpec())
+    if args.horizon is not None:
+        if args.horizon < 1:
+            raise MjstampError(f"--horizon={args.horizon} must be >= 1")
+        spec = dataclasses.replace(spec, horizon=args.horizon)
+    if args.tolerance is not None and not args.tolerance > 0:
+        raise MjstampError(f"--tolerance={args.tolerance} must be > 0 (metres)")
     say = (lambda msg: print(f"[check] {msg}", file=sys.stderr)) if not args.quiet else None
-    report = check_scene(scene, particles=args.particles, seed=args.seed, progress=say)
+    report = check_scene(scene, particles=args.particles, seed=args.seed, spec=spec,
+                         tolerance=args.tolerance, progress=say)
     if args.json:
         print(json.dumps(report))
-        return 0
+        return 0 if report["healthy"] else 1
     print(f"scene            {report['scene']} ({report['precision']}, "
-          f"{report['solver']}, ls_iterations={report['ls_iterations']})")
+          f"{report['solver']}, {report['iterations']} solver iteration(s), "
+          f"ls_iterations={report['ls_iterations']})")
     print(f"particles        {report['particles']} x {report['horizon']} steps, "
           f"{report['dim']} coordinates each")
+    print(f"physics          MJX vs MuJoCo C (scene's own solver): divergence median "
+          f"{report['physics_divergence_median_m']:.2g} m, p95 "
+          f"{report['physics_divergence_p95_m']:.2g} m (tolerance {report['tolerance_m']:.2g} m)")
     print(f"non-finite grads {report['nonfinite']} ({report['nonfinite_fraction']:.1%})")
     if report["rel_err_median"] is not None:
-        print(f"AD vs FD rel err median {report['rel_err_median']:.2e}, "
-              f"p95 {report['rel_err_p95']:.2e}")
+        print(f"AD vs FD         scene's own physics: rel err median "
+              f"{report['rel_err_median']:.2e}, p95 {report['rel_err_p95']:.2e}; gradient "
+              f"model: median {report['model_rel_err_median']:.2e}")
     print(f"value-and-grad   {report['us_per_particle_step']:.1f} us per particle-step "
           f"(compile {report['compile_s']:.1f} s)")
-    return 0
+    if report["healthy"]:
+        print("healthy")
+        return 0
+    for problem in report["problems"]:
+        print(f"UNHEALTHY: {problem}")
+    if "calibrated" in report:
+        print(f"calibration: {report['calibrated']['message']} (solve calibrates by itself; "
+              f"check it with --iterations {report['calibrated']['iterations']})")
+    return 1
+
+
+def _parse_value(key: str, text: str, default, annotation: str):
+    """One --set value, typed like its default (or, for a None default, its annotation)."""
+    kind = type(default) if default is not None else (
+        float if "float" in annotation else int if "int" in annotation else str
+    )
+    if kind is bool:
+        lowered = text.strip().lower()
+        if lowered in ("true", "1", "yes", "on"):
+            return True
+        if lowered in ("false", "0", "no", "off"):
+            return False
+        raise MjstampError(f"--set {key}={text!r}: expected true or false")
+    if default is None and text.strip().lower() == "none":
+        return None
+    try:
+        return kind(text)
+    except ValueError:
+        raise MjstampError(f"--set {key}={text!r}: expected {kind.__name__}") from None
 
 
 def _parse_settings(task_name: str, pairs: list[str]) -> dict:
-    """--set key=value pairs, typed like the task's defaults."""
-    from mjstamp import tasks
+    """--set key=value pairs: the task's settings and every solve setting, typed."""
+    import dataclasses
 
-    defaults = tasks.default_config(task_name)
+    from mjstamp import tasks
+    from mjstamp.solve import SolveConfig
+
+    defaults = {f.name: (f.default, str(f.type)) for f in dataclasses.fields(SolveConfig)}
+    defaults.update({k: (v, type(v).__name__) for k, v in tasks.default_config(task_name).items()})
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
@@ -79,13 +129,7 @@ def _parse_settings(task_name: str, pairs: list[str]) -> dict:
                 f"--set {key!r}: task {task_name!r} has no such setting; valid: "
                 + ", ".join(sorted(defaults))
             )
-        kind = type(defaults[key])
-        try:
-            out[key] = kind(value)
-        except ValueError:
-            raise MjstampError(
-                f"--set {key}={value!r}: expected a {kind.__name__}"
-            ) from None
+        out[key] = _parse_value(key, value, *defaults[key])
     return out
 
 
@@ -129,7 +173,11 @@ def _cmd_solve(args) -> int:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
         overrides["particles"] = args.particles
     out = plans.check_writable(args.out) if args.out else None
-    task, config = tasks.load(args.task, **overrides)
+    task_keys = tasks.default_config(args.task)
+    task, config = tasks.load(
+        args.task, **{k: v for k, v in overrides.items() if k in task_keys}
+    )
+    config.update({k: v for k, v in overrides.items() if k not in task_keys})
     progress = None if not args.quiet else False
     result = solve(task, config, seed=args.seed, progress=progress)
     coverage = None
@@ -217,7 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     check = sub.add_parser(
         "check",
-        help="gradient health of a scene: NaN rate, AD vs finite differences, speed",
+        help="fidelity and gradient health of a scene against its own physics (exit 1 if "
+        "unhealthy)",
     )
     check.add_argument("scene", help="shipped scene name (e.g. billiards) or MJCF path")
     check.add_argument("--particles", type=int, default=256, help="random particles")
@@ -228,6 +277,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="float64",
         help="MJX precision (float32 gradients through contacts can go NaN)",
     )
+    check.add_argument("--horizon", type=int, help="rollout steps (default: the scene's check)")
+    check.add_argument("--iterations", type=int,
+                       help="solver iterations of the gradient model (default: the scene's)")
+    check.add_argument("--tolerance", type=float, metavar="M",
+                       help="physics divergence allowed to 95%% of particles, in metres "
+                       "(default: 1e-3 of the scene's size)")
     check.add_argument("--json", action="store_true", help="print one JSON object")
     check.add_argument("--quiet", action="store_true", help="no progress on stderr")
     check.set_defaults(func=_cmd_check)

@@ -15,6 +15,7 @@ import functools
 import json
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -134,6 +135,147 @@ def simulate_mjx(task, theta) -> Replay:
     return Replay(task, np.asarray(qpos), source="mjx")
 
 
+@functools.lru_cache(maxsize=8)
+def _state_cost_fn(task):
+    """jit: states (B, T, nq), (B, T, nv) and θ (B, d) -> the task's cost C (B,).
+
+    The task's own costs on a trajectory it did not roll out itself (a MuJoCo
+    C replay): MJX kinematics give the poses, `Task.score` the terms.
+    """
+    scene = task.scene
+    d0 = mjx.make_data(scene.mx)
+    fields = task.fields()
+
+    def poses(qpos):
+        d = mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
+        return {f: getattr(d, f) for f in fields if f not in ("qpos", "qvel")}
+
+    def cost(qpos, qvel, theta):
+        traj = jax.vmap(jax.vmap(poses))(qpos)
+        traj.update(qpos=qpos, qvel=qvel)
+        _, values = task.score(traj, task.unpack(theta))
+        return task.cost_total(values)
+
+    return jax.jit(cost)
+
+
+def cost_c(task, replay: Replay, theta: np.ndarray, *, chunk: int = 32) -> np.ndarray:
+    """(n,) the task's cost C(θ) on a MuJoCo C replay of θ (n, d), in chunks.
+
+    Non-finite costs (a state that blew up) are +inf.
+    """
+    fn = _state_cost_fn(task)
+    n = len(theta)
+    out = np.empty(n)
+    for start in range(0, n, chunk):
+        stop = min(start + chunk, n)
+        idx = np.arange(start, start + chunk).clip(max=n - 1)  # one compiled shape
+        value = fn(jnp.asarray(replay.qpos[idx], task.scene.dtype),
+                   jnp.asarray(replay.qvel[idx], task.scene.dtype),
+                   jnp.asarray(theta[idx], task.scene.dtype))
+        out[start:stop] = np.asarray(value, np.float64)[: stop - start]
+    return np.where(np.isfinite(out), out, np.inf)
+
+
+@dataclasses.dataclass
+class Repair:
+    """What `repair` did to m plans.
+
+    Attributes:
+      theta: (m, d) the plans after repair (unchanged where not repaired).
+      repaired: (m,) whether a plan now verifies in MuJoCo C.
+      rollouts: MuJoCo C rollouts spent.
+      seconds: wall time.
+    """
+
+    theta: np.ndarray
+    repaired: np.ndarray
+    rollouts: int
+    seconds: float
+
+
+def _box(task) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(low, high, movable, clip) per coordinate of θ; logits are not moved."""
+    low = np.concatenate([v.low for v in task.variables])
+    high = np.concatenate([v.high for v in task.variables])
+    movable = np.concatenate([np.full(v.size, v.kind != "logits") for v in task.variables])
+    clip = np.concatenate([np.full(v.size, v.kind == "box") for v in task.variables])
+    return low, high, movable, clip
+
+
+def repair(
+    task,
+    theta: np.ndarray,
+    target: np.ndarray | None = None,
+    *,
+    rounds: int = 8,
+    samples: int = 32,
+    seed: int = 0,
+) -> Repair:
+    """Refines plans whose MuJoCo C replay fails, by a local search in MuJoCo C.
+
+    Each round draws `samples` candidates per plan around its current centre,
+    Gaussian with a scale per candidate spread log-uniformly from 0.1% to 5%
+    of each coordinate's box width (discrete logits stay fixed), replays them
+    all in one batched C rollout and decodes them like any plan. A plan is
+    repaired by its best successful candidate (one with the `target` task plan
+    first, then the lowest cost in C); otherwise the centre moves to the
+    candidate with the lowest cost in C (the task's own costs on the C
+    replay), if lower. The budget is `rounds · samples` rollouts per plan.
+
+    Args:
+      task: the `Task`.
+      theta: (m, d) plans that fail in MuJoCo C.
+      target: (m,) task plans they were meant to have (their MJX decode), or
+        None for any.
+      rounds: search rounds (0 repairs nothing).
+      samples: candidates per plan and round.
+      seed: the draws.
+
+    Returns:
+      A `Repair`.
+    """
+    started = time.perf_counter()
+    theta = np.array(theta, np.float64, copy=True)
+    m = len(theta)
+    out = Repair(theta.copy(), np.zeros(m, bool), 0, 0.0)
+    if m == 0 or rounds < 1:
+        return out
+    rng = np.random.default_rng(seed)
+    low, high, movable, clip = _box(task)
+    width = (high - low) * movable
+    centre = theta.copy()
+    centre_cost = cost_c(task, simulate_c(task, centre), centre)
+    out.rollouts += m
+    scales = np.exp(rng.uniform(np.log(1e-3), np.log(5e-2), (rounds, samples)))
+    for r in range(rounds):
+        active = np.flatnonzero(~out.repaired)
+        if not len(active):
+            break
+        eps = rng.normal(size=(len(active), samples, theta.shape[1]))
+        cand = centre[active, None] + eps * scales[r][None, :, None] * width
+        cand = np.where(clip, np.clip(cand, low, high), cand).reshape(-1, theta.shape[1])
+        replay = simulate_c(task, cand)
+        decoded = decode(task, replay, cand)
+        cost = cost_c(task, replay, cand).reshape(len(active), samples)
+        out.rollouts += len(cand)
+        ok = decoded.ok.reshape(len(active), samples)
+        plan = decoded.plan.reshape(len(active), samples)
+        cand = cand.reshape(len(active), samples, -1)
+        for row, i in enumerate(active):
+            if ok[row].any():
+                same = ok[row] & (plan[row] == target[i]) if target is not None else ok[row]
+                pool = same if same.any() else ok[row]
+                j = int(np.argmin(np.where(pool, cost[row], np.inf)))
+                out.theta[i] = cand[row, j]
+                out.repaired[i] = True
+            elif cost[row].min() < centre_cost[i]:
+                j = int(np.argmin(cost[row]))
+                centre[i], centre_cost[i] = cand[row, j], cost[row, j]
+    out.seconds = time.perf_counter() - started
+    return out
+
+
 @dataclasses.dataclass
 class Decoded:
     """Task plans of n particles read off a replay.
@@ -191,24 +333,28 @@ def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:
     return Decoded(ok, label, bits, actions, np.array(plan, dtype=object), code)
 
 
-def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: Decoded):
+def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: Decoded,
+          repaired: np.ndarray | None = None):
     """Rows of the result table: one per task plan found among returned plans.
 
     Plans are grouped by the task plan of their MuJoCo C replay (what actually
     happens); a row counts the returned plans with that task plan, how many of
-    them succeeded in C (verified), and the best MJX cost among the verified.
+    them succeeded in C (verified), how many of those only after repair, and
+    the best MJX cost among the verified.
     """
+    repaired = np.zeros(len(cost), bool) if repaired is None else repaired
     rows: dict[str, dict[str, Any]] = {}
     for i in np.flatnonzero(returned):
         key = verified.plan[i] if verified.ok[i] else f"{predicted.plan[i]} (failed)"
         row = rows.setdefault(key, {
             "task_plan": key, "code": verified.code[i], "plans": 0, "verified": 0,
-            "best_cost": None, "particles": [],
+            "repaired": 0, "best_cost": None, "particles": [],
         })
         row["plans"] += 1
         row["particles"].append(int(i))
         if verified.ok[i]:
             row["verified"] += 1
+            row["repaired"] += int(repaired[i])
             c = float(cost[i])
             row["best_cost"] = c if row["best_cost"] is None else min(row["best_cost"], c)
     out = sorted(rows.values(), key=lambda r: (-r["verified"], r["task_plan"]))
@@ -227,9 +373,9 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
     Returns:
       The table, a header line above it and a line of totals below it.
     """
-    header = ("task plan", "plans found", "verified", "best cost", "verified share")
+    header = ("task plan", "plans found", "verified", "repaired", "best cost", "verified share")
     body = [
-        (r["task_plan"], str(r["plans"]), str(r["verified"]),
+        (r["task_plan"], str(r["plans"]), str(r["verified"]), str(r.get("repaired", 0)),
          "-" if r["best_cost"] is None else f"{r['best_cost']:.3g}",
          f"{r['verified_share']:.0%}")
         for r in summary["task_plans"]
@@ -240,6 +386,18 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
     codes = (f" (symbol codes: {summary['distinct_verified_codes']})"
              if summary["declaration"]["symbols"] else "")
     footer = f"distinct verified task plans: {summary['distinct_verified_task_plans']}{codes}"
+    if summary.get("repaired_plans"):
+        footer += f"; {summary['repaired_plans']} plans verified only after repair in MuJoCo C"
+    fid = summary.get("fidelity") or {}
+    if "iterations" in fid and "mjx_divergence_p95_m" in fid:
+        tol = fid.get("tolerance_m")
+        footer += (
+            f"\ngradient model: {fid['iterations']} solver iteration(s); MJX vs MuJoCo C "
+            f"divergence p95 {fid['mjx_divergence_p95_m']:.2g} m"
+            + (f" (tolerance {tol:.2g} m" + ("" if fid.get("faithful", True) else
+                                             ", NOT faithful: allow_unfaithful") + ")"
+               if tol is not None else "")
+        )
     if markdown:
         lines = ["| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 1)]
         lines += ["| `" + b[0] + "` | " + " | ".join(b[1:]) + " |" for b in body]

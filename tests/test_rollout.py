@@ -71,11 +71,16 @@ def test_checkpointed_rollout_has_the_same_gradient(billiards):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("scene_name", ["billiards", "pushing"])
-def test_shipped_scene_gradients_are_healthy(scene_name, request):
-    """Issue targets: 0 non-finite of 256; median AD-vs-FD relative error <= 1e-3."""
-    scene = request.getfixturevalue(scene_name)
+@pytest.mark.parametrize("scene_name,iterations", [("billiards", 1), ("pushing", 2)])
+def test_shipped_scene_gradients_are_healthy(scene_name, iterations, request):
+    """0 non-finite of 256; fidelity to the scene's own physics; AD vs its FD <= 1e-3.
+
+    At the solver iterations `solve` calibrates for each: one is exact on the soft,
+    frictionless billiards table; the pusher's frictional contact needs two.
+    """
+    scene = request.getfixturevalue(scene_name).with_grad_options(iterations=iterations)
     report = check_scene(scene, particles=256, seed=0)
+    assert report["healthy"], report["problems"]
     assert report["nonfinite"] == 0
     assert report["rel_err_median"] <= 1e-3
     # The gradients are informative, not vanishing or exploding.

@@ -158,7 +158,7 @@ def test_solve_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
     blocker.write_text("")
     cases = [
         (["solve", "nope"], "unknown task 'nope'; valid: billiards"),
-        (["solve", "billiards", "--set", "horizon=abc"], "--set horizon='abc': expected a int"),
+        (["solve", "billiards", "--set", "horizon=abc"], "--set horizon='abc': expected int"),
         (["solve", "billiards", "--set", "nokey=1"], "--set 'nokey': task 'billiards' has no"),
         (["solve", "billiards", "--particles", "1"], "--particles=1 must be >= 2"),
         (["solve", "billiards", "--out", str(blocker / "sub")], "is not writable"),
@@ -176,7 +176,7 @@ def test_format_table_text_and_markdown():
         "verified_fraction": 2 / 3, "distinct_verified_task_plans": 1,
         "distinct_verified_codes": 1, "declaration": {"symbols": ["a"]},
         "task_plans": [
-            {"task_plan": "1-goal", "plans": 2, "verified": 2, "best_cost": 0.5,
+            {"task_plan": "1-goal", "plans": 2, "verified": 2, "repaired": 1, "best_cost": 0.5,
              "verified_share": 1.0},
             {"task_plan": "0 (failed)", "plans": 1, "verified": 0, "best_cost": None,
              "verified_share": 0.0},
@@ -185,12 +185,20 @@ def test_format_table_text_and_markdown():
     text = plans.format_table(summary).splitlines()
     assert text[0] == ("task t: 8 particles, 1.2 s; 3 plans returned, 67% verified in "
                        "MuJoCo C")
-    assert text[1].split() == ["task", "plan", "plans", "found", "verified", "best", "cost",
-                               "verified", "share"]
-    assert text[3].split() == ["1-goal", "2", "2", "0.5", "100%"]
-    assert text[4].split() == ["0", "(failed)", "1", "0", "-", "0%"]
+    assert text[1].split() == ["task", "plan", "plans", "found", "verified", "repaired", "best",
+                               "cost", "verified", "share"]
+    assert text[3].split() == ["1-goal", "2", "2", "1", "0.5", "100%"]
+    # Results files written before repair existed have no "repaired" counts.
+    assert text[4].split() == ["0", "(failed)", "1", "0", "0", "-", "0%"]
     assert text[5] == "distinct verified task plans: 1 (symbol codes: 1)"
     md = plans.format_table(summary, markdown=True)
-    assert "| `1-goal` | 2 | 2 | 0.5 | 100% |" in md.splitlines()
+    assert "| `1-goal` | 2 | 2 | 1 | 0.5 | 100% |" in md.splitlines()
     summary["declaration"]["symbols"] = []
     assert plans.format_table(summary).endswith("distinct verified task plans: 1")
+    summary.update(repaired_plans=1, fidelity={
+        "iterations": 2, "mjx_divergence_p95_m": 1e-9, "tolerance_m": 2e-3, "faithful": True})
+    assert plans.format_table(summary).splitlines()[-2:] == [
+        "distinct verified task plans: 1; 1 plans verified only after repair in MuJoCo C",
+        "gradient model: 2 solver iteration(s); MJX vs MuJoCo C divergence p95 1e-09 m "
+        "(tolerance 0.002 m)",
+    ]

@@ -1,11 +1,24 @@
-"""Gradient health of a scene: non-finite gradients, AD vs finite differences, speed.
+"""Gradient health of a scene: fidelity, non-finite gradients, AD vs finite differences, speed.
 
-`mjstamp check SCENE` draws N random particles (initial velocities or controls),
-differentiates a fixed smooth function of the MJX rollout with reverse-mode AD,
-and compares it with central finite differences of the same function computed
-in MuJoCo C, in float64, on the scene's gradient model `m_grad` (the C twin of
-the MJX model: same solver options, agreeing to about 1e-11 in float64). The
-reference is therefore independent of the JAX precision being checked.
+`mjstamp check SCENE` draws N random particles (initial velocities or controls)
+and measures the gradient model (MJX with the scene's `GradOptions`) against
+the scene's *own* physics, MuJoCo C with the MJCF's solver settings, which is
+what plans are verified with:
+
+* physics divergence: the largest body-position difference over the horizon
+  between the MJX rollout and the C replay of the same inputs
+  (`scenes.fidelity`); faithful when 95% of the particles stay within the
+  tolerance;
+* gradients: reverse-mode AD of a fixed smooth function of the MJX rollout
+  against central finite differences of the same function in float64 MuJoCo C
+  with the scene's own solver (`rel_err_*`), and, to tell a wrong derivative
+  from a wrong model, against differences of the gradient model's C twin
+  `m_grad` (`model_rel_err_*`).
+
+The check fails (`healthy` false, exit status 1 on the CLI) when any gradient
+is non-finite, the model is not faithful, or the median relative error against
+the scene's own physics exceeds `MAX_REL_ERR`; it then also reports the
+cheapest faithful solver setting (`fidelity.calibrate`), as `solve` would pick.
 """
 
 from __future__ import annotations
@@ -18,8 +31,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjstamp.errors import MjstampError
+from mjstamp.scenes import fidelity
 from mjstamp.scenes.rollout import replay, set_columns
 from mjstamp.scenes.scene import Scene
+
+# Median relative error of AD against the scene's own physics above which the
+# gradients are not those of the physics plans are verified in. A faithful model
+# measures 1e-9 to 1e-8 (float64); one solver iteration on a frictional scene 0.1.
+MAX_REL_ERR = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,9 +134,10 @@ def check_scene(
     spec: CheckSpec | None = None,
     seed: int = 0,
     fd_eps: float = 1e-6,
+    tolerance: float | None = None,
     progress=None,
 ) -> dict:
-    """Measures gradient health of `scene`; see the module docstring.
+    """Measures the fidelity and gradient health of `scene`; see the module docstring.
 
     The differentiated function is f(θ) = c₁·qpos_T + c₂·mean_t(qpos_t), with
     c₁, c₂ fixed random unit vectors: it touches every coordinate of the state
@@ -130,16 +150,21 @@ def check_scene(
         other scenes, every initial joint velocity in [-1, 1].
       seed: draws and the projection vectors.
       fd_eps: central-difference step (float64, MuJoCo C).
+      tolerance: physics divergence allowed to 95% of the particles, metres;
+        default `fidelity.default_tolerance(scene)`.
       progress: optional callable(str) for status lines.
 
     Returns:
-      A JSON-ready dict: nonfinite_fraction, rel_err_median, rel_err_p95,
-      us_per_particle_step (value-and-grad), and the settings.
+      A JSON-ready dict: healthy, problems, physics_divergence_median_m,
+      physics_divergence_p95_m, nonfinite_fraction, rel_err_median,
+      rel_err_p95, model_rel_err_median, us_per_particle_step, calibrated
+      (when unfaithful), and the settings.
     """
     if particles < 1:
         raise MjstampError(f"--particles={particles} must be >= 1")
     spec = spec or SCENE_CHECKS.get(scene.name, CheckSpec())
     say = progress or (lambda _: None)
+    tolerance = fidelity.default_tolerance(scene) if tolerance is None else float(tolerance)
     dim, to_inputs, sample = _parameterisation(scene, spec)
     if dim == 0:
         raise MjstampError(f"scene {scene.name!r} has no joints or actuators to vary")
@@ -148,10 +173,63 @@ def check_scene(
     c1, c2 = c1 / np.linalg.norm(c1), c2 / np.linalg.norm(c2)
     theta = sample(rng, particles)
 
-    def objective_np(qpos):
-        return qpos[:, -1] @ c1 + qpos.mean(axis=1) @ c2
-
+    say(f"MJX rollout vs MuJoCo C with the scene's own solver ({particles} x "
+        f"{spec.horizon} steps)")
     rollout = scene.rollout_fn(spec.horizon, fields=("qpos",))
+    inputs = to_inputs(theta, np)
+    qpos_mjx = np.asarray(rollout(*inputs)["qpos"], np.float64)
+    qpos_c = replay(scene, *inputs, solver="scene")["qpos"]
+    div = fidelity.divergence(
+        fidelity.body_positions(scene.m, qpos_mjx), fidelity.body_positions(scene.m, qpos_c)
+    )
+    grads = _gradients(scene, spec, rollout, to_inputs, theta, c1, c2, say)
+    rel = {}
+    for solver in ("scene", "grad"):
+        say(f"central differences in MuJoCo C, {solver} solver "
+            f"({2 * dim * particles} float64 rollouts)")
+        fd = _finite_differences(scene, to_inputs, theta, c1, c2, fd_eps, solver)
+        rel[solver] = _relative_errors(grads["grad"], fd, grads["finite"])
+    report = {
+        "scene": scene.name,
+        "precision": scene.precision,
+        "particles": particles,
+        "dim": dim,
+        "horizon": spec.horizon,
+        "physics_divergence_median_m": float(np.median(div)),
+        "physics_divergence_p95_m": float(np.percentile(div, 95)),
+        "physics_divergence_max_m": float(np.max(div)),
+        "tolerance_m": tolerance,
+        "faithful": bool(np.percentile(div, 95) <= tolerance),
+        "nonfinite": int((~grads["finite"]).sum()),
+        "nonfinite_fraction": float((~grads["finite"]).mean()),
+        **_error_stats("rel_err", rel["scene"]),
+        **_error_stats("model_rel_err", rel["grad"]),
+        "grad_norm_median": grads["norm_median"],
+        "us_per_particle_step": grads["seconds"] / (particles * spec.horizon) * 1e6,
+        "compile_s": grads["compile_s"],
+        "fd_eps": fd_eps,
+        "solver": scene.grad_options.solver,
+        "iterations": scene.grad_options.iterations,
+        "ls_iterations": scene.grad_options.ls_iterations,
+    }
+    report["problems"] = _problems(report)
+    report["healthy"] = not report["problems"]
+    if not report["faithful"]:
+        say("calibrating: the cheapest faithful solver setting")
+        calibration = fidelity.calibrate(scene, *inputs, tolerance=tolerance, progress=say)
+        report["calibrated"] = {
+            "faithful": calibration.faithful,
+            "iterations": calibration.after.iterations,
+            "ls_iterations": calibration.after.ls_iterations,
+            "divergence_p95_m": calibration.after.p95_m,
+            "message": calibration.message(),
+        }
+    return report
+
+
+def _gradients(scene, spec, rollout, to_inputs, theta, c1, c2, say) -> dict:
+    """Reverse-mode AD of the objective on every particle, timed."""
+    particles = len(theta)
 
     def objective(theta):
         qpos = rollout(*to_inputs(theta, jnp))["qpos"]
@@ -172,35 +250,50 @@ def check_scene(
         times.append(time.perf_counter() - t0)
     grad = np.asarray(grad, np.float64)
     finite = np.isfinite(grad).all(axis=1)
+    norm = float(np.median(np.linalg.norm(grad[finite], axis=1))) if finite.any() else None
+    return {"grad": grad, "finite": finite, "norm_median": norm,
+            "seconds": float(np.median(times)), "compile_s": compile_s}
 
-    say(f"central differences in MuJoCo C ({2 * dim * particles} float64 rollouts)")
-    plus = np.repeat(theta[:, None, :], dim, axis=1) + fd_eps * np.eye(dim)
-    minus = np.repeat(theta[:, None, :], dim, axis=1) - fd_eps * np.eye(dim)
+
+def _finite_differences(scene, to_inputs, theta, c1, c2, eps, solver) -> np.ndarray:
+    """(n, dim) central differences of the objective in float64 MuJoCo C."""
+    particles, dim = theta.shape
+    plus = np.repeat(theta[:, None, :], dim, axis=1) + eps * np.eye(dim)
+    minus = np.repeat(theta[:, None, :], dim, axis=1) - eps * np.eye(dim)
     both = np.concatenate([plus, minus]).reshape(-1, dim)
-    qpos = replay(scene, *to_inputs(both, np), solver="grad")["qpos"]
-    f = objective_np(qpos).reshape(2, particles, dim)
-    fd = (f[0] - f[1]) / (2 * fd_eps)
+    qpos = replay(scene, *to_inputs(both, np), solver=solver)["qpos"]
+    f = (qpos[:, -1] @ c1 + qpos.mean(axis=1) @ c2).reshape(2, particles, dim)
+    return (f[0] - f[1]) / (2 * eps)
 
+
+def _relative_errors(grad, fd, finite) -> np.ndarray:
     err = np.linalg.norm(grad - fd, axis=1)
     scale = np.maximum(np.linalg.norm(fd, axis=1), np.linalg.norm(grad, axis=1))
-    rel = err[finite] / np.maximum(scale[finite], 1e-9)
-    return {
-        "scene": scene.name,
-        "precision": scene.precision,
-        "particles": particles,
-        "dim": dim,
-        "horizon": spec.horizon,
-        "nonfinite": int((~finite).sum()),
-        "nonfinite_fraction": float((~finite).mean()),
-        "rel_err_median": float(np.median(rel)) if rel.size else None,
-        "rel_err_p95": float(np.percentile(rel, 95)) if rel.size else None,
-        "rel_err_max": float(rel.max()) if rel.size else None,
-        "grad_norm_median": float(np.median(np.linalg.norm(grad[finite], axis=1)))
-        if finite.any()
-        else None,
-        "us_per_particle_step": float(np.median(times) / (particles * spec.horizon) * 1e6),
-        "compile_s": compile_s,
-        "fd_eps": fd_eps,
-        "solver": scene.grad_options.solver,
-        "ls_iterations": scene.grad_options.ls_iterations,
-    }
+    return err[finite] / np.maximum(scale[finite], 1e-9)
+
+
+def _error_stats(prefix: str, rel: np.ndarray) -> dict:
+    if not rel.size:
+        return {f"{prefix}_median": None, f"{prefix}_p95": None, f"{prefix}_max": None}
+    return {f"{prefix}_median": float(np.median(rel)),
+            f"{prefix}_p95": float(np.percentile(rel, 95)),
+            f"{prefix}_max": float(rel.max())}
+
+
+def _problems(r: dict) -> list[str]:
+    """One line per failed criterion of a check report."""
+    out = []
+    if r["nonfinite"]:
+        out.append(f"{r['nonfinite']} of {r['particles']} gradients are not finite")
+    if not r["faithful"]:
+        out.append(
+            f"the gradient model ({r['iterations']} solver iteration(s)) diverges from the "
+            f"scene's own physics: p95 {r['physics_divergence_p95_m']:.2g} m > tolerance "
+            f"{r['tolerance_m']:.2g} m over {r['horizon']} steps"
+        )
+    if r["rel_err_median"] is not None and r["rel_err_median"] > MAX_REL_ERR:
+        out.append(
+            f"AD gradients differ from finite differences of the scene's own physics: median "
+            f"relative error {r['rel_err_median']:.2g} > {MAX_REL_ERR:g}"
+        )
+    return out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import importlib.resources
 import os
 from pathlib import Path
@@ -334,6 +335,31 @@ class Scene:
     def dof_adr(self, joint: str | int) -> int:
         """Address in qvel of a joint's first degree of freedom."""
         return int(self.m.jnt_dofadr[self.joint(joint)])
+
+    @functools.cached_property
+    def length_scale(self) -> float:
+        """The scene's size in metres: the diagonal of what can collide or mark a goal.
+
+        The bounding box, at `qpos0`, of every geom but planes and height fields
+        (each geom's own box, `geom_aabb`, turned into the world) and of every
+        site. N.B. not
+        MuJoCo's `m.stat.extent`, which a large floor plane inflates (a 50 m
+        plane under a 2 m table gives 10 m). Defaults that need a length (the
+        fidelity tolerance, softmin temperatures) are fractions of it.
+        """
+        m = self.m
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)
+        unbounded = (int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_HFIELD))
+        keep = ~np.isin(m.geom_type, unbounded)
+        mat = d.geom_xmat[keep].reshape(-1, 3, 3)
+        centre = d.geom_xpos[keep] + np.einsum("gij,gj->gi", mat, m.geom_aabb[keep, :3])
+        half = np.einsum("gij,gj->gi", np.abs(mat), m.geom_aabb[keep, 3:])
+        lo = np.concatenate([centre - half, d.site_xpos])
+        hi = np.concatenate([centre + half, d.site_xpos])
+        if not len(lo):
+            return 1.0  # nothing bounded: a metre, MuJoCo's own default extent
+        return float(max(np.linalg.norm(hi.max(axis=0) - lo.min(axis=0)), 1e-6))
 
     def initial_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The model's initial (qpos0, zero qvel), as float64 numpy arrays."""

@@ -66,6 +66,10 @@ def load(name: str, **overrides) -> tuple[Task, dict]:
     task = _REGISTRY[name][1](config)
     # Identifies what the task computes, for the trace cache (mjstamp.tracecache).
     task.cache_key = f"task={name} config={json.dumps(config, sort_keys=True)}"
+    from mjstamp.solve import SolveConfig  # noqa: PLC0415 - solve imports the engine
+
+    # The task's own settings; `solve` accepts them beside its own and records them.
+    task.settings = {k: v for k, v in config.items() if k not in SolveConfig.fields()}
     return task, config
 
 

@@ -18,6 +18,7 @@ A user never writes an SVGD update.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -162,6 +163,7 @@ class Task:
         self.bound_stiffness = 100.0
         self.display_hints: dict[str, list] = {"trace": [], "force": []}
         self.cache_key: str | None = None  # set by tasks.load for registered tasks
+        self.settings: dict[str, Any] = {}  # registered tasks: the settings they were built with
         self._distance_fns: dict[tuple[int, int], Callable] = {}
 
     # ------------------------------------------------------------------
@@ -276,7 +278,7 @@ class Task:
         geom2: str,
         *,
         before: tuple[str, str] | None = None,
-        alpha: float = 100.0,
+        alpha: float | None = None,
         beta: float = 0.0,
     ) -> None:
         """Declares a symbol: geom1 touches geom2 (before the first `before` contact).
@@ -287,13 +289,18 @@ class Task:
           geom2: second geom name.
           before: a geom pair; only steps up to its first contact count.
           alpha: α > 0 of App. B-B, in 1/m: the indicator saturates within
-            about 5/α of contact.
+            about 5/α of contact. Default: 4 / r with r the bounding radius of
+            the smaller geom (100 /m for a 4 cm ball), so the indicator turns
+            from 1/2 to about 0 over one body size, wider than a step of travel.
           beta: β of App. B-B (shift; 0 puts w = 1/2 at touching distance).
         """
         self._check_new(name, "symbol")
+        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
+        if alpha is None:
+            radii = [r for r in self.scene.m.geom_rbound[[g1, g2]] if r > 0]
+            alpha = 4.0 / min(radii) if radii else 100.0  # two planes: no size to go by
         if not alpha > 0:
             raise MjstampError(f"task {self.name!r}: contact {name!r} alpha={alpha} must be > 0")
-        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
         self.distance_fn(g1, g2)  # unsupported geom pairs fail here, at declaration
         pair = None
         if before is not None:
@@ -360,6 +367,22 @@ class Task:
         for a, b in force:
             self.scene.geom(a), self.scene.geom(b)
         self.display_hints = {"trace": list(trace), "force": [[a, b] for a, b in force]}
+
+    def on_scene(self, scene: Scene) -> Task:
+        """The same declaration on another gradient model of the same MJCF scene.
+
+        `scene` must share this task's C model (`Scene.with_grad_options`): names,
+        geoms and sizes resolved at declaration stay valid. The declaration is
+        shared, not copied; this task is left as it is.
+        """
+        if scene.m is not self.scene.m:
+            raise MjstampError(
+                f"task {self.name!r}: on_scene needs a scene made from the task's own "
+                f"(Scene.with_grad_options of {self.scene.name!r})"
+            )
+        other = copy.copy(self)
+        other.scene = scene
+        return other
 
     # ------------------------------------------------------------------
     # Layout of θ.
@@ -460,7 +483,14 @@ class Task:
         """
         params = self.unpack(theta)
         rollout = self.scene.rollout_fn(self.horizon, fields=self.fields())
-        traj = rollout(*self.inputs(params, hard=hard))
+        return self.score(rollout(*self.inputs(params, hard=hard)), params)
+
+    def score(self, traj: dict, params: dict) -> tuple[Rollout, dict[str, jax.Array]]:
+        """Symbols and every term's (n,) value on a trajectory of `fields()`.
+
+        The trajectory is usually the MJX rollout of `evaluate`; plan repair
+        passes a MuJoCo C replay's, to score a plan in the scene's own physics.
+        """
         r = Rollout(self, traj, params)
         for c in self.contacts:
             mask = None if c.before is None else r.until_contact(*c.before)

@@ -1,0 +1,294 @@
+"""Fidelity of the gradient model: how far it drifts from the scene's own physics.
+
+Plans are found on the gradient model (MJX with `GradOptions`: a fixed number
+of solver iterations, no warm start) and verified in MuJoCo C with the scene's
+own solver settings. The two agree only if the gradient model's solver
+converges: one Newton iteration is exact for soft frictionless contacts (the
+shipped billiards table, 1e-10 m) but on a frictional scene with MuJoCo's
+default contacts it drifts by centimetres within a second.
+
+Divergence of one particle = the largest difference of any body position
+(`xpos`, metres) over the horizon between the two models, started from the same
+state with the same controls. A model is *faithful* when that divergence is
+under the tolerance for `share` (95%) of the particles. The default tolerance
+is 1e-3 of the scene's size (`Scene.length_scale`: 2.5 mm on a 2.2 m table):
+plans are judged by where bodies end up, and that is far below the size of a
+pocket or goal region.
+
+`calibrate` picks the cheapest `(iterations, ls_iterations)` that is faithful.
+N.B. it steps the gradient model's MuJoCo C twin (`m` with the candidate
+options), not MJX itself: C is some 20x faster and compiles nothing, and MJX
+agrees with its C twin to about 1e-11 m where both collide the same shapes
+(tests/test_rollout.py); `solve` then measures MJX itself at the final
+particles, from the rollouts it computes anyway, and reports that too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from mjstamp.errors import MjstampError
+from mjstamp.fileio import write_atomic
+from mjstamp.scenes.rollout import replay
+
+CACHE = Path.home() / ".cache" / "mjstamp" / "fidelity"
+SHARE = 0.95
+RELATIVE_TOLERANCE = 1e-3
+
+# (iterations, ls_iterations) in order of cost; the first is the default model.
+# Cost per step grows about linearly in iterations (every particle runs all of
+# them under vmap), and more slowly in line-search iterations.
+CANDIDATES: tuple[tuple[int, int], ...] = (
+    (1, 4), (2, 4), (3, 4), (4, 4), (6, 6), (8, 8), (12, 8), (16, 10),
+)
+
+
+def default_tolerance(scene) -> float:
+    """1e-3 of the scene's size (`Scene.length_scale`), in metres."""
+    return RELATIVE_TOLERANCE * scene.length_scale
+
+
+def body_positions(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
+    """(n, T, nbody, 3) body positions of states (n, T, nq), by MuJoCo C kinematics."""
+    n, T = qpos.shape[:2]
+    d = mujoco.MjData(m)
+    out = np.empty((n, T, m.nbody, 3))
+    for i in range(n):
+        for t in range(T):
+            d.qpos[:] = qpos[i, t]
+            mujoco.mj_kinematics(m, d)
+            out[i, t] = d.xpos
+    return out
+
+
+def divergence(x_a: np.ndarray, x_b: np.ndarray) -> np.ndarray:
+    """(n,) largest body-position difference over steps and bodies, in metres.
+
+    Args:
+      x_a: (n, T, nbody, 3) body positions of one rollout.
+      x_b: (n, T, nbody, 3) those of another rollout of the same inputs.
+    """
+    diff = np.abs(np.asarray(x_a) - np.asarray(x_b)).max(axis=(1, 2, 3))
+    # N.B. a non-finite state is infinitely far from any finite one.
+    return np.where(np.isfinite(diff), diff, np.inf)
+
+
+@dataclasses.dataclass(frozen=True)
+class Measurement:
+    """Divergence of one gradient-model setting from the scene's own physics.
+
+    Attributes:
+      iterations, ls_iterations: the gradient model's solver settings.
+      median_m, p95_m, max_m: statistics of the per-particle divergence.
+      seconds: wall time of the gradient model's C rollouts.
+    """
+
+    iterations: int
+    ls_iterations: int
+    median_m: float
+    p95_m: float
+    max_m: float
+    seconds: float
+
+    def faithful(self, tolerance: float) -> bool:
+        """Whether 95% of the particles (`SHARE`) stay within `tolerance`."""
+        return self.p95_m <= tolerance
+
+
+def _stats(div: np.ndarray) -> tuple[float, float, float]:
+    return float(np.median(div)), float(np.percentile(div, 95)), float(np.max(div))
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """What `calibrate` found (JSON view: `as_dict`).
+
+    Attributes:
+      scene: the scene's name.
+      tolerance_m: the divergence allowed to 95% of the particles.
+      particles, horizon: the measurement's size.
+      before: the scene's configured gradient model (`scene.grad_options`).
+      after: the chosen setting (the cheapest faithful one, else the least
+        divergent one tried).
+      faithful: whether `after` is within tolerance.
+      tried: every setting measured, in order.
+      seconds: wall time of the calibration (0 when read from the cache).
+      cached: read from the on-disk cache.
+    """
+
+    scene: str
+    tolerance_m: float
+    particles: int
+    horizon: int
+    before: Measurement
+    after: Measurement
+    faithful: bool
+    tried: tuple[Measurement, ...]
+    seconds: float = 0.0
+    cached: bool = False
+
+    def as_dict(self) -> dict:
+        """JSON-ready view."""
+        return {
+            "scene": self.scene,
+            "tolerance_m": self.tolerance_m,
+            "particles": self.particles,
+            "horizon": self.horizon,
+            "faithful": self.faithful,
+            "iterations": self.after.iterations,
+            "ls_iterations": self.after.ls_iterations,
+            "divergence_before_median_m": self.before.median_m,
+            "divergence_before_p95_m": self.before.p95_m,
+            "divergence_after_median_m": self.after.median_m,
+            "divergence_after_p95_m": self.after.p95_m,
+            "before": dataclasses.asdict(self.before),
+            "after": dataclasses.asdict(self.after),
+            "tried": [dataclasses.asdict(t) for t in self.tried],
+            "seconds": self.seconds,
+            "cached": self.cached,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Calibration:
+        """Inverse of `as_dict`."""
+        return cls(
+            scene=d["scene"], tolerance_m=d["tolerance_m"], particles=d["particles"],
+            horizon=d["horizon"], before=Measurement(**d["before"]),
+            after=Measurement(**d["after"]), faithful=d["faithful"],
+            tried=tuple(Measurement(**t) for t in d["tried"]), seconds=0.0, cached=True,
+        )
+
+    def message(self) -> str:
+        """One line: what was chosen, or why no setting is faithful."""
+        a = self.after
+        if self.faithful:
+            return (
+                f"scene {self.scene!r}: gradient model with {a.iterations} solver "
+                f"iteration(s), {a.ls_iterations} line-search; divergence from the scene's "
+                f"own physics p95 {a.p95_m:.2g} m <= tolerance {self.tolerance_m:.2g} m "
+                f"(was {self.before.p95_m:.2g} m with {self.before.iterations})"
+            )
+        return (
+            f"scene {self.scene!r} cannot be made faithful within {a.iterations} solver "
+            f"iterations: divergence from the scene's own physics p95 {a.p95_m:.2g} m "
+            f"> tolerance {self.tolerance_m:.2g} m over {self.horizon} steps "
+            f"({self.particles} particles)"
+        )
+
+
+def model_bytes(m: mujoco.MjModel) -> bytes:
+    """The compiled model as bytes (mj_saveModel), for fingerprints."""
+    buffer = np.empty(mujoco.mj_sizeModel(m), np.uint8)
+    mujoco.mj_saveModel(m, None, buffer)
+    return buffer.tobytes()
+
+
+def _key(scene, inputs, tolerance, candidates) -> str:
+    h = hashlib.sha256(model_bytes(scene.m))
+    h.update(json.dumps(
+        {"grad": dataclasses.asdict(scene.grad_options), "tol": tolerance,
+         "candidates": list(candidates), "share": SHARE, "v": 1}, sort_keys=True,
+    ).encode())
+    for a in inputs:
+        h.update(np.ascontiguousarray(np.asarray(a, np.float64)).tobytes())
+    return h.hexdigest()[:24]
+
+
+def calibrate(
+    scene,
+    qpos0: np.ndarray,
+    qvel0: np.ndarray,
+    ctrl: np.ndarray | None = None,
+    *,
+    horizon: int | None = None,
+    tolerance: float | None = None,
+    max_iterations: int = 16,
+    candidates: Sequence[tuple[int, int]] = CANDIDATES,
+    cache: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> Calibration:
+    """The cheapest gradient-solver setting that follows the scene's own physics.
+
+    Replays the particles' inputs in MuJoCo C with the scene's own options (the
+    reference, what plans are verified with) and with each candidate gradient
+    model in order of cost, stopping at the first whose divergence is within
+    `tolerance` for 95% of the particles.
+
+    Args:
+      scene: a `Scene`; `scene.grad_options` is the "before" model and supplies
+        every option a candidate does not set (solver, timestep, warm start).
+      qpos0: (n, nq) initial positions.
+      qvel0: (n, nv) initial velocities.
+      ctrl: (n, T, nu) controls, or None with `horizon`.
+      horizon: T, when `ctrl` is None.
+      tolerance: metres; default `default_tolerance(scene)`.
+      max_iterations: the budget: candidates with more solver iterations are
+        not tried.
+      candidates: (iterations, ls_iterations) pairs in order of cost.
+      cache: read and write the result on disk (~/.cache/mjstamp/fidelity),
+        keyed by the compiled model, the options, the inputs and the tolerance.
+      progress: optional callable(str) for status lines.
+
+    Returns:
+      A `Calibration`.
+    """
+    say = progress or (lambda _: None)
+    tolerance = default_tolerance(scene) if tolerance is None else float(tolerance)
+    if not tolerance > 0:
+        raise MjstampError(f"fidelity tolerance={tolerance} must be > 0 (metres)")
+    if int(max_iterations) < 1:
+        raise MjstampError(f"max_iterations={max_iterations} must be >= 1")
+    qpos0 = np.asarray(qpos0, np.float64)
+    qvel0 = np.asarray(qvel0, np.float64)
+    if ctrl is None:
+        if horizon is None:
+            raise MjstampError("calibrate needs ctrl or horizon")
+        ctrl = np.zeros((len(qpos0), int(horizon), scene.m.nu))
+    ctrl = np.asarray(ctrl, np.float64)
+    base = (scene.grad_options.iterations, scene.grad_options.ls_iterations)
+    todo = [base] + [c for c in candidates if c != base and c[0] <= max_iterations]
+    path = CACHE / f"{scene.name}-{_key(scene, (qpos0, qvel0, ctrl), tolerance, todo)}.json"
+    if cache and path.is_file():
+        try:
+            return Calibration.from_dict(json.loads(path.read_text()))
+        except (ValueError, KeyError, TypeError):
+            pass  # a corrupt entry is measured again and rewritten
+    started = time.perf_counter()
+    reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
+    x_ref = body_positions(scene.m, reference)
+    tried: list[Measurement] = []
+    for iterations, ls in todo:
+        candidate = scene.with_grad_options(iterations=iterations, ls_iterations=ls)
+        t0 = time.perf_counter()
+        qpos = replay(candidate, qpos0, qvel0, ctrl, fields=("qpos",), solver="grad")["qpos"]
+        seconds = time.perf_counter() - t0
+        diff = divergence(body_positions(scene.m, qpos), x_ref)
+        tried.append(Measurement(iterations, ls, *_stats(diff), seconds))
+        say(f"solver iterations {iterations}, line search {ls}: divergence p95 "
+            f"{tried[-1].p95_m:.2g} m (tolerance {tolerance:.2g} m)")
+        if tried[-1].faithful(tolerance):
+            break
+    faithful = [t for t in tried if t.faithful(tolerance)]
+    after = faithful[0] if faithful else min(tried, key=lambda t: t.p95_m)
+    result = Calibration(
+        scene=scene.name, tolerance_m=tolerance, particles=len(qpos0),
+        horizon=int(ctrl.shape[1]), before=tried[0], after=after,
+        faithful=bool(faithful), tried=tuple(tried),
+        seconds=time.perf_counter() - started,
+    )
+    if cache:
+        try:
+            CACHE.mkdir(parents=True, exist_ok=True)
+            payload = json.dumps(result.as_dict()).encode()
+            write_atomic(path, lambda f: f.write(payload))
+        except OSError:
+            pass  # a read-only cache only costs time
+    return result
