@@ -159,7 +159,7 @@ def _print_table(summary: dict) -> None:
 
 def _cmd_solve(args) -> int:
     from mjstamp import figures, modes, plans, tasks
-    from mjstamp.solve import solve
+    from mjstamp.solve import solve, task_jit
 
     overrides = _parse_settings(args.task, args.set or [])
     if args.max_pushes is not None:
@@ -189,7 +189,8 @@ def _cmd_solve(args) -> int:
     summary = result.summary(coverage)
     if out is not None:
         written = plans.save(out, summary, result.arrays(), model=task.scene.m)
-        written += figures.save_figures(result, out, progress=progress)
+        written += figures.save_figures(result, out, progress=progress,
+                                        jit=task_jit(result.task))
         if not args.json:
             print(f"wrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     if args.json:

@@ -311,6 +311,15 @@ def _iteration_seconds(d: svgd.StampDiagnostics) -> dict[str, float | None]:
     return out
 
 
+def task_jit(task):
+    """`jit(fn, name, *example) -> compiled fn` for this task: `_jit` bound to it.
+
+    For `figures.save_figures(result, out, jit=task_jit(result.task))`, so a
+    registered task's figures skip tracing on a re-run as its solve does.
+    """
+    return lambda fn, name, *example: _jit(fn, task, name, *example)
+
+
 def _jit(fn, task, name: str, *example):
     """jax.jit, through the trace cache when the task has a `cache_key`.
 
