@@ -15,6 +15,7 @@ import math
 import numbers
 import sys
 import time
+from collections import Counter
 from collections.abc import Mapping
 from typing import Any
 
@@ -24,7 +25,7 @@ import numpy as np
 import optax
 
 from mjstamp import plans as plans_mod
-from mjstamp import svgd
+from mjstamp import seeding, svgd
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.scenes import fidelity
 from mjstamp.tracecache import cached_jit
@@ -69,6 +70,12 @@ class SolveConfig:
       repair: refine returned plans whose MuJoCo C replay fails, in C.
       repair_rounds: rounds of the local search per plan.
       repair_samples: candidates per plan and round.
+      screen: seed the particles from `screen · particles` candidates of the
+        prior replayed in MuJoCo C, spread over the task plans they reach
+        (`mjstamp.seeding`); 1 draws them from the prior directly.
+      keep_visited: a particle whose final state is not a verified plan, or
+        duplicates another's task plan, returns the plan it held at the end
+        of SVGD or at the start if that one was (no plan found is lost).
     """
 
     particles: int = 128
@@ -90,11 +97,13 @@ class SolveConfig:
     repair: bool = True
     repair_rounds: int = 8
     repair_samples: int = 32
+    screen: int = 16
+    keep_visited: bool = True
 
     def __post_init__(self):
         ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
                 "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
-                "repair_samples": 1}
+                "repair_samples": 1, "screen": 1}
         for name, low in ints.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
@@ -111,7 +120,7 @@ class SolveConfig:
             ):
                 what = "a number > 0" + (" or None" if name in optional else "")
                 raise MjstampError(f"solve setting {name}={value!r} must be {what}")
-        for name in ("calibrate", "allow_unfaithful", "repair"):
+        for name in ("calibrate", "allow_unfaithful", "repair", "keep_visited"):
             if not isinstance(getattr(self, name), bool):
                 raise MjstampError(
                     f"solve setting {name}={getattr(self, name)!r} must be True or False"
@@ -206,6 +215,8 @@ class SolveResult:
     rows: list[dict]
     timings: dict[str, float]
     fidelity: dict
+    screen: dict | None = None
+    source: np.ndarray | None = None
 
     @property
     def verified_fraction(self) -> float:
@@ -237,6 +248,10 @@ class SolveResult:
             "distinct_verified_codes": len(codes),
             "verified_codes": codes,
             "fidelity": self.fidelity,
+            "screen": self.screen,
+            "kept_from_earlier": {
+                name: int(((self.source == name) & ok).sum()) for name in ("svgd", "initial")
+            } if self.source is not None else {},
             "task_plans": [
                 {k: r[k] for k in ("task_plan", "code", "plans", "verified", "repaired",
                                    "verified_share", "best_cost")}
@@ -249,6 +264,7 @@ class SolveResult:
                     "predicted_task_plan": self.predicted.plan[i],
                     "verified": bool(self.verified.ok[i]),
                     "repaired": bool(self.repaired[i]),
+                    "source": "final" if self.source is None else str(self.source[i]),
                     "cost": float(self.cost[i]),
                     "motion_plan": {
                         name: np.asarray(val[i]).tolist()
@@ -280,6 +296,9 @@ class SolveResult:
             "initial_theta": self.initial_theta, "cost": self.cost,
             "returned": self.returned, "verified": self.verified.ok,
             "repaired": self.repaired,
+            "source": np.asarray(
+                self.source if self.source is not None else ["final"] * len(self.theta), dtype=str
+            ),
             # Task plan of every particle's C replay (returned or not), for figures.
             "task_plan": np.asarray(self.verified.plan, dtype=str),
             "predicted_task_plan": np.asarray(self.predicted.plan, dtype=str),
@@ -418,7 +437,14 @@ def solve(
     say = _say(progress)
     t_start = time.perf_counter()
     n = cfg.particles
-    theta0 = task.initial_particles(jax.random.key(seed), n)
+    screen = None
+    if cfg.screen > 1:
+        say(f"screening {cfg.screen * n} candidates in MuJoCo C")
+        theta0, screen = seeding.seed_particles(task, jax.random.key(seed), n, screen=cfg.screen)
+        theta0 = jnp.asarray(theta0, task.scene.dtype)
+    else:
+        theta0 = task.initial_particles(jax.random.key(seed), n)
+    t_screen = time.perf_counter()
     calibration = None
     if cfg.calibrate:
         task, calibration = calibrate(task, np.asarray(theta0), cfg, say=say)
@@ -462,6 +488,13 @@ def solve(
 
     say("decoding and verifying in MuJoCo C")
     cost, mjx_replay, predicted, replay, verified = outcome(theta)
+    source = np.full(n, "final", dtype=object)
+    if cfg.keep_visited:
+        snapshots = {"svgd": np.asarray(result.svgd_particles, np.float64),
+                     "initial": np.asarray(theta0, np.float64)}
+        theta, source = _keep_visited(theta, (cost, predicted, verified), snapshots, outcome)
+        if (source != "final").any():
+            cost, mjx_replay, predicted, replay, verified = outcome(theta)
     returned = predicted.ok & np.isfinite(cost)
     t_verify = time.perf_counter()
     repaired = np.zeros(n, bool)
@@ -486,7 +519,8 @@ def solve(
     )
     rows = plans_mod.group(cost, returned, predicted, verified, repaired)
     timings = {
-        "calibrate_s": t_calibrate - t_start,
+        "screen_s": t_screen - t_start,
+        "calibrate_s": t_calibrate - t_screen,
         "stamp_s": t_stamp - t_calibrate,
         "verify_s": t_verify - t_stamp,
         "repair_s": t_repair - t_verify,
@@ -498,8 +532,59 @@ def solve(
         initial_theta=np.asarray(theta0, np.float64), cost=cost, returned=returned,
         repaired=repaired, predicted=predicted, verified=verified, replay=replay,
         diagnostics=result.diagnostics, stamp=result, rows=rows, timings=timings,
-        fidelity=report,
+        fidelity=report, screen=None if screen is None else screen.as_dict(), source=source,
     )
+
+
+def _keep_visited(theta, final, snapshots, outcome):
+    """Per particle, the best plan it visited: its final state or an earlier snapshot.
+
+    A particle can pass through a plan that succeeds and leave it (SVGD's
+    repulsion or an Adam step out of a narrow valley). No plan found is lost:
+    a particle whose final state is not a returned, verified plan takes its
+    latest snapshot that is one; then a particle whose final task plan other
+    particles also hold takes a snapshot whose task plan none holds, if it has
+    one. Deterministic (particles in index order, later snapshots first).
+
+    Args:
+      theta: (n, d) final particles.
+      final: (cost, predicted, verified) of `theta`.
+      snapshots: {name: (n, d)} earlier particles, latest first.
+      outcome: θ -> (cost, mjx replay, predicted, C replay, verified).
+
+    Returns:
+      (theta (n, d) with chosen snapshots, source (n,) names: "final" or a key
+      of `snapshots`).
+    """
+    def good(cost, predicted, verified):
+        return predicted.ok & np.isfinite(cost) & verified.ok
+
+    cost, predicted, verified = final
+    ok = good(cost, predicted, verified)
+    plan = np.asarray(verified.plan, dtype=object).copy()
+    theta = theta.copy()
+    source = np.full(len(theta), "final", dtype=object)
+    counts = Counter(plan[ok])
+    seen = {}
+    for name, snap in snapshots.items():
+        c, _, p, _, v = outcome(snap)
+        seen[name] = (snap, good(c, p, v), np.asarray(v.plan, dtype=object))
+    for i in np.flatnonzero(~ok):
+        for name, (snap, good_s, plan_s) in seen.items():
+            if good_s[i]:
+                theta[i], source[i], plan[i], ok[i] = snap[i], name, plan_s[i], True
+                counts[plan_s[i]] += 1
+                break
+    for i in np.flatnonzero(ok & (source == "final")):
+        if counts[plan[i]] < 2:
+            continue
+        for name, (snap, good_s, plan_s) in seen.items():
+            if good_s[i] and counts[plan_s[i]] == 0:
+                counts[plan[i]] -= 1
+                theta[i], source[i], plan[i] = snap[i], name, plan_s[i]
+                counts[plan_s[i]] += 1
+                break
+    return theta, source
 
 
 def _us_per_particle_step(d: svgd.StampDiagnostics, n: int, horizon: int) -> float | None:
