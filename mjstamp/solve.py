@@ -355,8 +355,8 @@ def _jit(fn, task, name: str, *example):
 
 
 def _say(progress: bool | None):
-    """Status lines on stderr when progress is shown (None: on a terminal)."""
-    show = sys.stderr.isatty() if progress is None else bool(progress)
+    """Status lines on stderr unless progress is False (a terminal, a log or a pipe)."""
+    show = True if progress is None else bool(progress)
     return (lambda msg: print(f"[solve] {msg}", file=sys.stderr, flush=True)) if show else (
         lambda _msg: None
     )
@@ -420,7 +420,8 @@ def solve(
         registered task's own settings, `task.settings`, may be in it too and
         are recorded); None for the defaults.
       seed: makes the run reproducible.
-      progress: tqdm bar and status lines on stderr; None shows them on a terminal.
+      progress: True: tqdm bar and status lines on stderr; None: the bar on a
+        terminal, status lines in any case; False: nothing.
 
     Returns:
       A `SolveResult`.

@@ -153,6 +153,23 @@ def test_progress_bar_in_interactive_use(capsys):
     assert "STAMP" in capsys.readouterr().err
 
 
+def test_status_lines_without_a_terminal(capsys):
+    """progress=None with stderr not a terminal (a log, a pipe): a line per phase and tenth."""
+    run_stamp(
+        two_modes, uniform_init, None, StampConfig(svgd_max_iters=20, sgd_max_iters=10),
+        progress=None,
+    )
+    err = capsys.readouterr().err.splitlines()
+    assert "[stamp] SVGD: compiling its step (or loading it from the caches)" in err
+    assert "[stamp] SGD: compiling its step (or loading it from the caches)" in err
+    svgd = [line for line in err if line.startswith("[stamp] SVGD ")]
+    assert [line.split()[2] for line in svgd] == [f"{t}/20:" for t in (1, *range(2, 21, 2))]
+    assert all("mean log density" in line and "s/it" in line for line in svgd)
+    run_stamp(two_modes, uniform_init, None, StampConfig(svgd_max_iters=2, sgd_max_iters=0),
+              progress=False)
+    assert capsys.readouterr().err == ""
+
+
 @pytest.mark.parametrize(
     "means, moves, expected",
     [

@@ -279,7 +279,9 @@ def run_stamp(
         Adam(config.svgd_learning_rate).
       sgd_optimizer: optax transformation of the SGD phase; default
         Adam(config.sgd_learning_rate).
-      progress: show a tqdm bar; None shows it when stderr is a terminal.
+      progress: show a tqdm bar; None shows it when stderr is a terminal and
+        prints a status line per phase and every tenth of it otherwise (a log
+        or a pipe).
       jit: how each phase's step is compiled, jit(step, example_state,
         example_key, phase_name) -> compiled step; default `jax.jit`. A task
         passes `mjstamp.tracecache.cached_jit` here so a re-run skips tracing.
@@ -309,8 +311,10 @@ def run_stamp(
         logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
         svgd_optimizer, sgd_optimizer,
     )  # fmt: skip
-    show = sys.stderr.isatty() if progress is None else bool(progress)
-    loop = _Loop(key, config, jit, n=particles.shape[0], show=show)
+    tty = sys.stderr.isatty()
+    show = tty if progress is None else bool(progress)
+    loop = _Loop(key, config, jit, n=particles.shape[0], show=show,
+                 lines=progress is None and not tty)
     with loop.bar:  # closed on the way out, also when a phase raises
         svgd, svgd_converged = loop.run_phase(
             PHASE_SVGD, svgd_step, init(particles, svgd_optimizer), config.svgd_max_iters
@@ -350,11 +354,18 @@ def _phase_steps(
 class _Loop:
     """The Python loop of `run_stamp`: one PRNG key and one list of records across phases."""
 
-    def __init__(self, key: jax.Array, config: StampConfig, jit, *, n: int, show: bool):
+    def __init__(
+        self, key: jax.Array, config: StampConfig, jit, *, n: int, show: bool, lines: bool
+    ):
         self.key = key
         self.config = config
         self.jit = jit
         self.n = n
+        # N.B. without a terminal tqdm writes nothing a log can show: say lines instead.
+        self.say = (
+            (lambda msg: print(f"[stamp] {msg}", file=sys.stderr, flush=True)) if lines
+            else (lambda _msg: None)
+        )
         self.bar = tqdm(
             total=config.svgd_max_iters + config.sgd_max_iters,
             desc="STAMP",
@@ -370,6 +381,8 @@ class _Loop:
         name = "svgd" if phase == PHASE_SVGD else "sgd"
         step = jax.jit(step) if self.jit is None else self.jit(step, state, self.key, name)
         means, moves = [], []
+        every = max(1, max_iters // 10)
+        self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
         for t in range(1, max_iters + 1):
             started = time.perf_counter()
             self.key, sub = jax.random.split(self.key)
@@ -386,6 +399,9 @@ class _Loop:
             self.bar.update(1)
             if t % 10 == 1:
                 self.bar.set_postfix(phase=name.upper(), logp=f"{means[-1]:.4g}")
+            if t == 1 or t % every == 0 or t == max_iters:
+                self.say(f"{name.upper()} {t}/{max_iters}: mean log density {means[-1]:.4g}, "
+                         f"{row.step_seconds:.2f} s/it")
             if has_converged(
                 means,
                 moves,
