@@ -50,6 +50,8 @@ def _cmd_check(args) -> int:
     options = {} if args.iterations is None else {"iterations": args.iterations}
     if args.iterations is not None and args.iterations < 1:
         raise MjstampError(f"--iterations={args.iterations} must be >= 1")
+    if args.gradient is not None:
+        options["gradient"] = args.gradient
     scene = _load_scene(args.scene, **options)
     spec = SCENE_CHECKS.get(scene.name, CheckSpec())
     if args.horizon is not None:
@@ -64,8 +66,10 @@ def _cmd_check(args) -> int:
     if args.json:
         print(json.dumps(report))
         return 0 if report["healthy"] else 1
-    print(f"scene            {report['scene']} ({report['precision']}, "
-          f"{report['solver']}, {report['iterations']} solver iteration(s), "
+    from mjstamp.scenes.fidelity import describe
+
+    print(f"scene            {report['scene']} ({report['precision']}, {report['solver']}, "
+          f"{describe(report['gradient'], report['iterations'])}, "
           f"ls_iterations={report['ls_iterations']})")
     print(f"particles        {report['particles']} x {report['horizon']} steps, "
           f"{report['dim']} coordinates each")
@@ -85,8 +89,11 @@ def _cmd_check(args) -> int:
     for problem in report["problems"]:
         print(f"UNHEALTHY: {problem}")
     if "calibrated" in report:
-        print(f"calibration: {report['calibrated']['message']} (solve calibrates by itself; "
-              f"check it with --iterations {report['calibrated']['iterations']})")
+        cal = report["calibrated"]
+        flags = (f"--gradient implicit --iterations {cal['iterations']}"
+                 if cal["gradient"] == "implicit" else f"--iterations {cal['iterations']}")
+        print(f"calibration: {cal['message']} (solve calibrates by itself; check it with "
+              f"{flags})")
     return 1
 
 
@@ -280,7 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("--horizon", type=int, help="rollout steps (default: the scene's check)")
     check.add_argument("--iterations", type=int,
-                       help="solver iterations of the gradient model (default: the scene's)")
+                       help="solver iterations of the gradient model (default: 1 unrolled)")
+    check.add_argument("--gradient", choices=("unrolled", "implicit"),
+                       help="how the solver is differentiated: each of --iterations "
+                       "(unrolled), or one Newton step after MJX's own converged loop (implicit)")
     check.add_argument("--tolerance", type=float, metavar="M",
                        help="physics divergence allowed to 95%% of particles, in metres "
                        "(default: 1e-3 of the scene's size)")

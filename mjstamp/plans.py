@@ -27,6 +27,7 @@ import numpy as np
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import write_atomic
 from mjstamp.scenes._mjx import mjx
+from mjstamp.scenes.fidelity import describe
 from mjstamp.scenes.rollout import replay as replay_c
 
 SCHEMA_VERSION = 2  # 2: scene.mjb, qpos0/qvel0/qvel/ctrl in trajectories.npz
@@ -392,7 +393,8 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
     if "iterations" in fid and "mjx_divergence_p95_m" in fid:
         tol = fid.get("tolerance_m")
         footer += (
-            f"\ngradient model: {fid['iterations']} solver iteration(s); MJX vs MuJoCo C "
+            f"\ngradient model: {describe(fid.get('gradient', 'unrolled'), fid['iterations'])}; "
+            "MJX vs MuJoCo C "
             f"divergence p95 {fid['mjx_divergence_p95_m']:.2g} m"
             + (f" (tolerance {tol:.2g} m" + ("" if fid.get("faithful", True) else
                                              ", NOT faithful: allow_unfaithful") + ")"

@@ -64,7 +64,8 @@ class SolveConfig:
         follow the scene's own physics (`scenes.fidelity.calibrate`).
       fidelity_tolerance: divergence allowed to 95% of the particles, metres;
         None: 1e-3 of the scene's size.
-      max_solver_iterations: calibration budget (solver iterations).
+      max_solver_iterations: calibration budget (solver iterations); None:
+        the MJCF's own `opt.iterations`.
       allow_unfaithful: solve even when no setting within budget is faithful
         (the result is then marked so).
       repair: refine returned plans whose MuJoCo C replay fails, in C.
@@ -92,7 +93,7 @@ class SolveConfig:
     jacobian: str = "auto"
     calibrate: bool = True
     fidelity_tolerance: float | None = None
-    max_solver_iterations: int = 16
+    max_solver_iterations: int | None = None
     allow_unfaithful: bool = False
     repair: bool = True
     repair_rounds: int = 8
@@ -106,6 +107,8 @@ class SolveConfig:
                 "repair_samples": 1, "screen": 1}
         for name, low in ints.items():
             value = getattr(self, name)
+            if value is None and name == "max_solver_iterations":
+                continue
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
                 raise MjstampError(f"solve setting {name}={value!r} must be an integer >= {low}")
         positive = ("svgd_step", "sgd_step", "rtol")
@@ -384,9 +387,17 @@ def calibrate(task, theta: np.ndarray, cfg: SolveConfig, *, say=None):
         say(calibration.message())
     after = calibration.after
     scene = task.scene.with_grad_options(
-        iterations=after.iterations, ls_iterations=after.ls_iterations
+        gradient=after.gradient, iterations=after.iterations, ls_iterations=after.ls_iterations
     )
     return task.on_scene(scene), calibration
+
+
+def _mjx_divergence(task, theta: np.ndarray, qpos_mjx: np.ndarray) -> np.ndarray:
+    """(n,) divergence of MJX rollouts (n, T, nq) of θ from their C replays (own solver)."""
+    qpos_c = plans_mod.simulate_c(task, theta).qpos
+    m = task.scene.m
+    return fidelity.divergence(fidelity.body_positions(m, qpos_mjx),
+                               fidelity.body_positions(m, qpos_c))
 
 
 def _stamp_config(cfg: SolveConfig, task, seed: int) -> svgd.StampConfig:
@@ -449,6 +460,30 @@ def solve(
     calibration = None
     if cfg.calibrate:
         task, calibration = calibrate(task, np.asarray(theta0), cfg, say=say)
+
+    def final(th):
+        """Cost and MJX trajectory of particles at Γ(θ), from one rollout."""
+        r, values = task.evaluate(th, hard=True)
+        return task.cost_total(values), r.traj["qpos"]
+
+    final = _jit(final, task, "final", jnp.asarray(theta0, task.scene.dtype))
+    if calibration is not None:
+        # MJX itself, not its C twin, on the particles calibrated on: the same
+        # compiled evaluation the decode uses at the end.
+        say("MJX rollouts of the initial particles against MuJoCo C")
+        _, qpos = jax.device_get(final(jnp.asarray(theta0, task.scene.dtype)))
+        div = _mjx_divergence(task, np.asarray(theta0, np.float64), np.asarray(qpos))
+        mjx_p95 = float(np.percentile(div, 95))
+        if mjx_p95 > calibration.tolerance_m and not cfg.allow_unfaithful:
+            raise MjstampError(
+                f"scene {task.scene.name!r}: MJX rollouts diverge from MuJoCo C with the "
+                f"scene's own solver by p95 {mjx_p95:.2g} m > tolerance "
+                f"{calibration.tolerance_m:.2g} m over {task.horizon} steps although its C "
+                f"twin agrees ({calibration.after.p95_m:.2g} m): MJX collides or integrates "
+                "something differently; set allow_unfaithful=True to solve anyway"
+            )
+        initial_mjx = {"mjx_initial_divergence_median_m": float(np.median(div)),
+                       "mjx_initial_divergence_p95_m": mjx_p95}
     t_calibrate = time.perf_counter()
     widths = _box_widths(task)
     discrete = {}
@@ -472,13 +507,6 @@ def solve(
     t_stamp = time.perf_counter()
 
     theta = np.asarray(result.particles, np.float64)
-
-    def final(th):
-        """Cost and MJX trajectory of the final particles, from one rollout."""
-        r, values = task.evaluate(th, hard=True)
-        return task.cost_total(values), r.traj["qpos"]
-
-    final = _jit(final, task, "final", jnp.asarray(theta, task.scene.dtype))
 
     def outcome(theta):
         cost, qpos = jax.device_get(final(jnp.asarray(theta, task.scene.dtype)))
@@ -511,7 +539,10 @@ def solve(
     t_repair = time.perf_counter()
     divergence = fidelity.divergence(mjx_replay.xpos, replay.xpos)
     report = dict(calibration.as_dict() if calibration is not None else {"calibrated": False})
+    if calibration is not None:
+        report.update(initial_mjx)
     report.update(
+        gradient=task.scene.grad_options.gradient,
         mjx_divergence_median_m=float(np.median(divergence)),
         mjx_divergence_p95_m=float(np.percentile(divergence, 95)),
         iterations=task.scene.grad_options.iterations,

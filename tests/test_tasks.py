@@ -199,6 +199,6 @@ def test_format_table_text_and_markdown():
         "iterations": 2, "mjx_divergence_p95_m": 1e-9, "tolerance_m": 2e-3, "faithful": True})
     assert plans.format_table(summary).splitlines()[-2:] == [
         "distinct verified task plans: 1; 1 plans verified only after repair in MuJoCo C",
-        "gradient model: 2 solver iteration(s); MJX vs MuJoCo C divergence p95 1e-09 m "
-        "(tolerance 0.002 m)",
+        "gradient model: unrolled (2 solver iterations); MJX vs MuJoCo C divergence p95 "
+        "1e-09 m (tolerance 0.002 m)",
     ]

@@ -209,6 +209,7 @@ def check_scene(
         "compile_s": grads["compile_s"],
         "fd_eps": fd_eps,
         "solver": scene.grad_options.solver,
+        "gradient": scene.grad_options.gradient,
         "iterations": scene.grad_options.iterations,
         "ls_iterations": scene.grad_options.ls_iterations,
     }
@@ -219,6 +220,7 @@ def check_scene(
         calibration = fidelity.calibrate(scene, *inputs, tolerance=tolerance, progress=say)
         report["calibrated"] = {
             "faithful": calibration.faithful,
+            "gradient": calibration.after.gradient,
             "iterations": calibration.after.iterations,
             "ls_iterations": calibration.after.ls_iterations,
             "divergence_p95_m": calibration.after.p95_m,
@@ -287,7 +289,8 @@ def _problems(r: dict) -> list[str]:
         out.append(f"{r['nonfinite']} of {r['particles']} gradients are not finite")
     if not r["faithful"]:
         out.append(
-            f"the gradient model ({r['iterations']} solver iteration(s)) diverges from the "
+            f"the gradient model ({fidelity.describe(r['gradient'], r['iterations'])}) diverges "
+            "from the "
             f"scene's own physics: p95 {r['physics_divergence_p95_m']:.2g} m > tolerance "
             f"{r['tolerance_m']:.2g} m over {r['horizon']} steps"
         )

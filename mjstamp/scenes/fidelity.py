@@ -15,12 +15,17 @@ is 1e-3 of the scene's size (`Scene.length_scale`: 2.5 mm on a 2.2 m table):
 plans are judged by where bodies end up, and that is far below the size of a
 pocket or goal region.
 
-`calibrate` picks the cheapest `(iterations, ls_iterations)` that is faithful.
-N.B. it steps the gradient model's MuJoCo C twin (`m` with the candidate
-options), not MJX itself: C is some 20x faster and compiles nothing, and MJX
-agrees with its C twin to about 1e-11 m where both collide the same shapes
-(tests/test_rollout.py); `solve` then measures MJX itself at the final
-particles, from the rollouts it computes anyway, and reports that too.
+`calibrate` picks the cheapest faithful setting among, by default, one
+unrolled Newton iteration (exact on soft frictionless contacts, the cheapest)
+and the implicit gradient (MJX's own solver run to the MJCF's tolerance, one
+differentiated Newton step: exact wherever the solver converges, at 0.8-1.5x
+the cost of one iteration; see `gradsafe.gradient_mode`). Unrolled settings
+with more iterations can be passed as candidates (benchmarks do). N.B. it
+steps the gradient model's MuJoCo C twin (`m` with the candidate options), not
+MJX itself: C is some 20x faster and compiles nothing, and MJX agrees with its
+C twin to about 1e-11 m where both collide the same shapes and converge
+(tests/test_rollout.py); `solve` then measures MJX itself on the same
+particles before STAMP starts, and at the final particles.
 """
 
 from __future__ import annotations
@@ -43,11 +48,13 @@ CACHE = Path.home() / ".cache" / "mjstamp" / "fidelity"
 SHARE = 0.95
 RELATIVE_TOLERANCE = 1e-3
 
-# (iterations, ls_iterations) in order of cost; the first is the default model.
-# Cost per step grows about linearly in iterations (every particle runs all of
-# them under vmap), and more slowly in line-search iterations.
-CANDIDATES: tuple[tuple[int, int], ...] = (
-    (1, 4), (2, 4), (3, 4), (4, 4), (6, 6), (8, 8), (12, 8), (16, 10),
+# (gradient, iterations, ls_iterations) in order of cost; iterations None: the
+# MJCF's own (a cap: the implicit loop stops at the MJCF's tolerance). Unrolled
+# cost grows about linearly in iterations: every particle runs all of them under
+# vmap, and reverse mode stores each.
+CANDIDATES: tuple[tuple[str, int | None, int], ...] = (("unrolled", 1, 4), ("implicit", None, 4))
+UNROLLED: tuple[tuple[str, int | None, int], ...] = tuple(
+    ("unrolled", k, ls) for k, ls in ((1, 4), (2, 4), (3, 4), (4, 4), (6, 6), (8, 8), (16, 10))
 )
 
 
@@ -86,11 +93,13 @@ class Measurement:
     """Divergence of one gradient-model setting from the scene's own physics.
 
     Attributes:
+      gradient: "unrolled" or "implicit" (`GradOptions.gradient`).
       iterations, ls_iterations: the gradient model's solver settings.
       median_m, p95_m, max_m: statistics of the per-particle divergence.
       seconds: wall time of the gradient model's C rollouts.
     """
 
+    gradient: str
     iterations: int
     ls_iterations: int
     median_m: float
@@ -143,6 +152,7 @@ class Calibration:
             "particles": self.particles,
             "horizon": self.horizon,
             "faithful": self.faithful,
+            "gradient": self.after.gradient,
             "iterations": self.after.iterations,
             "ls_iterations": self.after.ls_iterations,
             "divergence_before_median_m": self.before.median_m,
@@ -168,20 +178,28 @@ class Calibration:
 
     def message(self) -> str:
         """One line: what was chosen, or why no setting is faithful."""
-        a = self.after
+        a, b = self.after, self.before
         if self.faithful:
             return (
-                f"scene {self.scene!r}: gradient model with {a.iterations} solver "
-                f"iteration(s), {a.ls_iterations} line-search; divergence from the scene's "
-                f"own physics p95 {a.p95_m:.2g} m <= tolerance {self.tolerance_m:.2g} m "
-                f"(was {self.before.p95_m:.2g} m with {self.before.iterations})"
+                f"scene {self.scene!r}: {describe(a.gradient, a.iterations)} gradient model; "
+                f"divergence from the scene's own physics p95 {a.p95_m:.2g} m <= tolerance "
+                f"{self.tolerance_m:.2g} m (was {b.p95_m:.2g} m "
+                f"{describe(b.gradient, b.iterations)})"
             )
         return (
             f"scene {self.scene!r} cannot be made faithful within {a.iterations} solver "
-            f"iterations: divergence from the scene's own physics p95 {a.p95_m:.2g} m "
+            f"iterations ({a.gradient}): divergence from the scene's own physics p95 "
+            f"{a.p95_m:.2g} m "
             f"> tolerance {self.tolerance_m:.2g} m over {self.horizon} steps "
             f"({self.particles} particles)"
         )
+
+
+def describe(gradient: str, iterations: int) -> str:
+    """'implicit (up to 100 iterations)' or 'unrolled (2 iterations)'."""
+    if gradient == "implicit":
+        return f"implicit (up to {iterations} solver iterations)"
+    return f"unrolled ({iterations} solver iteration{'s' if iterations != 1 else ''})"
 
 
 def model_bytes(m: mujoco.MjModel) -> bytes:
@@ -195,7 +213,7 @@ def _key(scene, inputs, tolerance, candidates) -> str:
     h = hashlib.sha256(model_bytes(scene.m))
     h.update(json.dumps(
         {"grad": dataclasses.asdict(scene.grad_options), "tol": tolerance,
-         "candidates": list(candidates), "share": SHARE, "v": 1}, sort_keys=True,
+         "candidates": list(candidates), "share": SHARE, "v": 2}, sort_keys=True,
     ).encode())
     for a in inputs:
         h.update(np.ascontiguousarray(np.asarray(a, np.float64)).tobytes())
@@ -210,8 +228,8 @@ def calibrate(
     *,
     horizon: int | None = None,
     tolerance: float | None = None,
-    max_iterations: int = 16,
-    candidates: Sequence[tuple[int, int]] = CANDIDATES,
+    max_iterations: int | None = None,
+    candidates: Sequence[tuple[str, int | None, int]] = CANDIDATES,
     cache: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> Calibration:
@@ -230,9 +248,10 @@ def calibrate(
       ctrl: (n, T, nu) controls, or None with `horizon`.
       horizon: T, when `ctrl` is None.
       tolerance: metres; default `default_tolerance(scene)`.
-      max_iterations: the budget: candidates with more solver iterations are
-        not tried.
-      candidates: (iterations, ls_iterations) pairs in order of cost.
+      max_iterations: the budget of solver iterations: unrolled candidates with
+        more are not tried and the implicit loop stops there; None: the MJCF's
+        own `opt.iterations`.
+      candidates: (gradient, iterations or None, ls_iterations) in order of cost.
       cache: read and write the result on disk (~/.cache/mjstamp/fidelity),
         keyed by the compiled model, the options, the inputs and the tolerance.
       progress: optional callable(str) for status lines.
@@ -244,8 +263,10 @@ def calibrate(
     tolerance = default_tolerance(scene) if tolerance is None else float(tolerance)
     if not tolerance > 0:
         raise MjstampError(f"fidelity tolerance={tolerance} must be > 0 (metres)")
-    if int(max_iterations) < 1:
-        raise MjstampError(f"max_iterations={max_iterations} must be >= 1")
+    own = int(scene.m.opt.iterations)
+    budget = own if max_iterations is None else int(max_iterations)
+    if budget < 1:
+        raise MjstampError(f"max_solver_iterations={max_iterations} must be >= 1")
     qpos0 = np.asarray(qpos0, np.float64)
     qvel0 = np.asarray(qvel0, np.float64)
     if ctrl is None:
@@ -253,8 +274,15 @@ def calibrate(
             raise MjstampError("calibrate needs ctrl or horizon")
         ctrl = np.zeros((len(qpos0), int(horizon), scene.m.nu))
     ctrl = np.asarray(ctrl, np.float64)
-    base = (scene.grad_options.iterations, scene.grad_options.ls_iterations)
-    todo = [base] + [c for c in candidates if c != base and c[0] <= max_iterations]
+    g = scene.grad_options
+    base = (g.gradient, g.iterations, g.ls_iterations)
+    todo = [base]
+    for gradient, iterations, ls in candidates:
+        wanted = own if iterations is None else iterations
+        if gradient == "unrolled" and wanted > budget:
+            continue  # over budget; the implicit loop is capped at the budget instead
+        if (gradient, min(wanted, budget), ls) not in todo:
+            todo.append((gradient, min(wanted, budget), ls))
     path = CACHE / f"{scene.name}-{_key(scene, (qpos0, qvel0, ctrl), tolerance, todo)}.json"
     if cache and path.is_file():
         try:
@@ -265,14 +293,16 @@ def calibrate(
     reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
     x_ref = body_positions(scene.m, reference)
     tried: list[Measurement] = []
-    for iterations, ls in todo:
-        candidate = scene.with_grad_options(iterations=iterations, ls_iterations=ls)
+    for gradient, iterations, ls in todo:
+        candidate = scene.with_grad_options(
+            gradient=gradient, iterations=iterations, ls_iterations=ls
+        )
         t0 = time.perf_counter()
         qpos = replay(candidate, qpos0, qvel0, ctrl, fields=("qpos",), solver="grad")["qpos"]
         seconds = time.perf_counter() - t0
         diff = divergence(body_positions(scene.m, qpos), x_ref)
-        tried.append(Measurement(iterations, ls, *_stats(diff), seconds))
-        say(f"solver iterations {iterations}, line search {ls}: divergence p95 "
+        tried.append(Measurement(gradient, iterations, ls, *_stats(diff), seconds))
+        say(f"{describe(gradient, iterations)}, line search {ls}: divergence p95 "
             f"{tried[-1].p95_m:.2g} m (tolerance {tolerance:.2g} m)")
         if tried[-1].faithful(tolerance):
             break

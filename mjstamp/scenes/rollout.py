@@ -12,6 +12,7 @@ import mujoco.rollout
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
 
 # Fields a rollout can return, each of shape (n, T, ...) for steps 1..T.
@@ -115,8 +116,12 @@ def build_rollout(
     with jax.ensure_compile_time_eval():
         d0 = cast_floats(mjx.make_data(mx), dtype)
 
+    mode = scene.grad_options.gradient
+
     def step(dx, u):
-        dx = mjx.step(mx, dx.replace(ctrl=u))
+        # N.B. read while tracing: how MJX's solver is differentiated (gradsafe).
+        with gradsafe.gradient_mode(mode):
+            dx = mjx.step(mx, dx.replace(ctrl=u))
         src = mjx.kinematics(mx, dx) if need_kinematics else dx
         return dx, {f: getattr(src, f) for f in fields}
 

@@ -18,6 +18,7 @@ import numpy as np
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
+from mjstamp.scenes.collisions import check_collidable
 from mjstamp.scenes.rollout import build_rollout, cast_floats
 
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
@@ -55,6 +56,14 @@ class GradOptions:
         not support MuJoCo's global contact override.
       warmstart: keep the solver's warm start. Off: one Newton iteration from
         the smooth acceleration is the same every step, whatever the history.
+      gradient: how the solver is differentiated (`gradsafe.gradient_mode`):
+        "unrolled" differentiates each of the `iterations`; "implicit" runs
+        MJX's own solver loop (up to `iterations`, stopping at the MJCF's
+        tolerance) forward only and differentiates one Newton step from its
+        solution, the implicit-function derivative. Implicit is exact where
+        the solver converges, for about the cost of one unrolled iteration;
+        one unrolled iteration is cheapest where it is already exact (soft
+        frictionless contacts). `solve` picks between them per task.
     """
 
     solver: str = "newton"
@@ -62,12 +71,23 @@ class GradOptions:
     ls_iterations: int = 4
     timestep: float | None = None
     warmstart: bool = False
+    gradient: str = "unrolled"
 
     def __post_init__(self):
         if self.solver not in _SOLVERS:
             raise MjstampError(
                 f"GradOptions.solver={self.solver!r} is not supported; valid: "
                 f"{valid_list(_SOLVERS)}"
+            )
+        if self.gradient not in gradsafe.GRADIENTS:
+            raise MjstampError(
+                f"GradOptions.gradient={self.gradient!r} is not valid; valid: "
+                f"{valid_list(gradsafe.GRADIENTS)}"
+            )
+        if self.gradient == "implicit" and self.solver != "newton":
+            raise MjstampError(
+                "GradOptions.gradient='implicit' needs solver='newton' (its Hessian gives "
+                "the implicit derivative)"
             )
         if int(self.iterations) < 1:
             raise MjstampError(
@@ -104,10 +124,11 @@ def _options_from_custom(m: mujoco.MjModel) -> dict[str, Any]:
         if not name or not name.startswith(_CUSTOM_PREFIX):
             continue
         key = name[len(_CUSTOM_PREFIX) :]
-        if key not in fields or key == "solver":
+        numeric = [k for k in fields if k not in ("solver", "gradient")]
+        if key not in numeric:
             raise MjstampError(
                 f"unknown custom numeric {name!r}; valid: "
-                f"{valid_list(_CUSTOM_PREFIX + k for k in fields if k != 'solver')}"
+                f"{valid_list(_CUSTOM_PREFIX + k for k in numeric)}"
             )
         adr = m.numeric_adr[i]
         value = float(m.numeric_data[adr])
@@ -228,6 +249,7 @@ class Scene:
           MjstampError: malformed MJCF, missing file, bad option.
         """
         self.m, self._label = _load_model(source, assets)
+        check_collidable(self.m, self._label)
         self.name = name or self.m.names[: self.m.names.index(b"\0")].decode() or (
             Path(source).stem if isinstance(source, (str, Path)) else "scene"
         )
@@ -372,6 +394,12 @@ class Scene:
         only the gradient model (`m_grad`, `mx`) and the compiled rollouts are
         new. Returns `self` when nothing changes.
         """
+        unknown = sorted(set(fields) - {f.name for f in dataclasses.fields(GradOptions)})
+        if unknown:
+            raise MjstampError(
+                f"unknown option {unknown[0]!r}; valid: "
+                f"{valid_list(f.name for f in dataclasses.fields(GradOptions))}"
+            )
         options = dataclasses.replace(self.grad_options, **fields)
         if options == self.grad_options:
             return self
