@@ -253,8 +253,10 @@ def main() -> None:
         rows.append(run_scene(name, particles=args.particles, seed=args.seed,
                               overrides=overrides, shots=args.shots or SHOTS,
                               random=not args.no_random, progress=progress))
-        if not args.json:
-            print(f"{name}: done ({rows[-1]['wall_s']:.0f} s solve)", file=sys.stderr)
+        r = rows[-1]
+        print(f"{name}: " + (f"error: {r['error']}" if r.get("error") else
+                             f"{r['verified']} verified plans, {r['task_plans_found']} task "
+                             f"plans, {r['wall_s']:.0f} s solve"), file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps({
             "benchmark": "scene_suite", "particles": args.particles, "seed": args.seed,
