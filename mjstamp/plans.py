@@ -397,7 +397,9 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
             "MJX vs MuJoCo C "
             f"divergence p95 {fid['mjx_divergence_p95_m']:.2g} m"
             + (f" (tolerance {tol:.2g} m" + ("" if fid.get("faithful", True) else
-                                             ", NOT faithful: allow_unfaithful") + ")"
+                                             ", NOT faithful: allow_unfaithful")
+               + ("" if fid.get("faithful_at_end", True) else
+                  ", over it at the final particles: their plans are verified in C") + ")"
                if tol is not None else "")
         )
     if markdown:

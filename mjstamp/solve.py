@@ -545,6 +545,11 @@ def solve(
         gradient=task.scene.grad_options.gradient,
         mjx_divergence_median_m=float(np.median(divergence)),
         mjx_divergence_p95_m=float(np.percentile(divergence, 95)),
+        # N.B. the particles end where calibration may not have looked (contacts the
+        # initial ones never made): their plans are verified in C whatever this says.
+        faithful_at_end=bool(
+            calibration is None or np.percentile(divergence, 95) <= calibration.tolerance_m
+        ),
         iterations=task.scene.grad_options.iterations,
         ls_iterations=task.scene.grad_options.ls_iterations,
         us_per_particle_step=_us_per_particle_step(result.diagnostics, n, task.horizon),
