@@ -202,3 +202,22 @@ def test_format_table_text_and_markdown():
         "gradient model: unrolled (2 solver iterations); MJX vs MuJoCo C divergence p95 "
         "1e-09 m (tolerance 0.002 m)",
     ]
+
+
+def test_free_joint_coordinates_and_spatial_goals():
+    xml = """<mujoco><worldbody><site name="goal" pos="0 0 1" size="0.05"/>
+      <body name="ball" pos="0 0 0.1"><freejoint name="free"/>
+      <geom name="ball" type="sphere" size="0.05"/></body></worldbody></mujoco>"""
+    task = Task("free", Scene(xml), horizon=5)
+    task.box("v", low=[-1, -1, 0], high=[1, 1, 2],
+             initial_qvel=(("free", 0), ("free", 1), ("free", 2)))
+    task.box("spin", low=[-1], high=[1], initial_qvel=[("free", 5)])
+    assert task.variables[0].qvel == (0, 1, 2) and task.variables[1].qvel == (5,)
+    with pytest.raises(MjstampError, match="joint 'free' has 6 qvel coordinates; index 6"):
+        task.box("bad", low=[0], high=[1], initial_qvel=[("free", 6)])
+    task.cost("up", costs.reach("ball", ["goal"], axes=(0, 1, 2)))
+    task.success(costs.reaches("ball", {"goal": "goal"}, radius=0.1, axes=(0, 1, 2)))
+    theta = np.array([[0.0, 0.0, 0.0, 0.0]])
+    replay = plans.simulate_c(task, theta)
+    ok, _ = task.success_fn(replay)
+    assert not ok[0]  # 0.9 m below the goal, though right under it in x-y

@@ -48,7 +48,8 @@ def aim(geom1: str, geom2: str, *, temperature: float | None = None):
 
 
 def reach(
-    body: str, sites: Sequence[str], *, when: str = "softmin", temperature: float | None = None
+    body: str, sites: Sequence[str], *, when: str = "softmin", temperature: float | None = None,
+    axes: Sequence[int] = (0, 1),
 ):
     """Squared distance of a body to the nearest of several goal sites.
 
@@ -61,6 +62,8 @@ def reach(
       body: body name.
       sites: goal site names.
       when: "final" or "softmin".
+      axes: world axes the distance is measured along: (0, 1) on a table
+        (the default), (0, 1, 2) in space.
       temperature: softmin temperature in m². Default: (L / 20)² with L the
         scene's size (`Scene.length_scale`; 0.016 m² on a 2.5 m table), so
         passes within a few tenths of the scene of the goal all pull.
@@ -71,9 +74,11 @@ def reach(
     if when not in ("final", "softmin"):
         raise ValueError(f"reach(when={when!r}); valid: final, softmin")
 
+    axes = list(axes)
+
     def cost(r):
-        x = r.body_pos(body)[..., :2]
-        goals = jnp.stack([r.site_pos(s)[..., :2] for s in sites], axis=-2)  # (n, T, g, 2)
+        x = r.body_pos(body)[..., axes]
+        goals = jnp.stack([r.site_pos(s)[..., axes] for s in sites], axis=-2)  # (n, T, g, a)
         d2 = jnp.min(jnp.sum((x[:, :, None] - goals) ** 2, axis=-1), axis=-1)  # (n, T)
         if when == "final":
             return d2[:, -1]
@@ -106,24 +111,29 @@ def path_length(body: str):
     return cost
 
 
-def reaches(body: str, goals: Mapping[str, str], *, radius: float):
+def reaches(
+    body: str, goals: Mapping[str, str], *, radius: float, axes: Sequence[int] = (0, 1)
+):
     """Success predicate: the body's centre comes within `radius` of a goal site.
 
     Args:
       body: body name.
       goals: {label: site name}; the label of the first goal reached becomes
         part of the task plan (e.g. the pocket).
-      radius: in metres (planar distance, x and y).
+      radius: in metres.
+      axes: world axes the distance is measured along: (0, 1), planar, by
+        default; (0, 1, 2) in space.
 
     Returns:
       fn(replay) -> (ok (n,) bool, label (n,) str; "" where not reached).
     """
+    axes = list(axes)
 
     def predicate(replay):
-        x = replay.body_pos(body)[..., :2]  # (n, T, 2)
+        x = replay.body_pos(body)[..., axes]  # (n, T, a)
         labels = list(goals)
         inside = np.stack(
-            [np.linalg.norm(x - replay.site_pos(goals[k])[..., :2], axis=-1) < radius
+            [np.linalg.norm(x - replay.site_pos(goals[k])[..., axes], axis=-1) < radius
              for k in labels], axis=-1)  # (n, T, g)
         hit_any = inside.any(axis=-1)
         ok = hit_any.any(axis=1)

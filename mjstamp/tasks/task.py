@@ -25,6 +25,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from mjstamp import relax
@@ -34,6 +35,16 @@ from mjstamp.scenes.rollout import set_columns
 from mjstamp.scenes.scene import Scene
 
 KINDS = ("box", "angle", "logits")
+
+
+def _joint_width(joint_type: int, kind: str) -> int:
+    """Coordinates of a joint type in qvel or qpos."""
+    free, ball = int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL)
+    if joint_type == free:
+        return 6 if kind == "qvel" else 7
+    if joint_type == ball:
+        return 3 if kind == "qvel" else 4
+    return 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,16 +189,38 @@ class Task:
             raise MjstampError(f"task {self.name!r}: {what} name {name!r} is already declared")
 
     def _joint_addresses(self, joints, kind: str, size: int, var: str):
+        """Addresses in qvel/qpos of joint coordinates: a name, or (name, index).
+
+        A name is the joint's first coordinate (all a slide or hinge has); (name, k)
+        is its k-th, for free and ball joints (qvel of a free joint: 3 linear then
+        3 angular; qpos: 3 positions then a quaternion).
+        """
         if joints is None:
             return None
-        joints = (joints,) if isinstance(joints, str) else tuple(joints)
+        if isinstance(joints, str) or (
+            isinstance(joints, tuple) and len(joints) == 2 and isinstance(joints[1], int)
+        ):
+            joints = (joints,)
+        joints = tuple(joints)
         if len(joints) != size:
             raise MjstampError(
                 f"task {self.name!r}: variable {var!r} has {size} coordinates but "
                 f"initial_{kind} names {len(joints)} joints"
             )
-        adr = self.scene.dof_adr if kind == "qvel" else self.scene.qpos_adr
-        return tuple(adr(j) for j in joints)
+        m = self.scene.m
+        out = []
+        for j in joints:
+            name, k = (j, 0) if isinstance(j, str) else (j[0], int(j[1]))
+            jid = self.scene.joint(name)
+            width = _joint_width(int(m.jnt_type[jid]), kind)
+            if not 0 <= k < width:
+                raise MjstampError(
+                    f"task {self.name!r}: variable {var!r}: joint {name!r} has {width} "
+                    f"{kind} coordinates; index {k} is not in 0..{width - 1}"
+                )
+            base = self.scene.dof_adr(name) if kind == "qvel" else self.scene.qpos_adr(name)
+            out.append(base + k)
+        return tuple(out)
 
     def box(
         self,
@@ -204,8 +237,11 @@ class Task:
           name: variable name.
           low: lower bounds, one per coordinate.
           high: upper bounds, one per coordinate (high > low).
-          initial_qvel: joints whose initial velocity this variable sets.
-          initial_qpos: joints whose initial position this variable sets.
+          initial_qvel: joints whose initial velocity this variable sets, one
+            per coordinate: a joint name, or (name, k) for the k-th velocity of
+            a free or ball joint (a free joint: vx, vy, vz, then ωx, ωy, ωz).
+          initial_qpos: joints whose initial position this variable sets, named
+            the same way.
         """
         self._check_new(name, "variable")
         low = np.atleast_1d(np.asarray(low, float))
