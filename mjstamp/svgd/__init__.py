@@ -56,6 +56,8 @@ from mjstamp.svgd.stamp import (
     run_stamp,
 )
 from mjstamp.svgd.steps import (
+    NEAR_ZERO_ATOL,
+    NEAR_ZERO_RTOL,
     StepInfo,
     SVGDState,
     build_dsvgd_step,
@@ -63,10 +65,14 @@ from mjstamp.svgd.steps import (
     build_svgd_step,
     importance_log_weights,
     init,
+    near_zero_share,
+    near_zero_threshold,
     stein_direction,
 )
 
 __all__ = [
+    "NEAR_ZERO_ATOL",
+    "NEAR_ZERO_RTOL",
     "PHASE_SGD",
     "PHASE_SVGD",
     "IterationRecord",
@@ -91,6 +97,8 @@ __all__ = [
     "importance_log_weights",
     "init",
     "median_bandwidth",
+    "near_zero_share",
+    "near_zero_threshold",
     "rbf",
     "stein_direction",
     "sum_kernels",

@@ -35,6 +35,8 @@ from mjstamp.svgd.steps import (
     build_sgd_step,
     build_svgd_step,
     init,
+    near_zero_share,
+    near_zero_threshold,
 )
 
 __all__ = [
@@ -149,6 +151,26 @@ class StampDiagnostics(NamedTuple):
       n_nonfinite: (T,) particles with a NaN/inf log ρ or gradient.
       step_seconds: (T,) wall time of each iteration; the first of each phase
         includes compiling its step (or loading it from the caches).
+      driving_norm_mean: (T,) mean over particles of ‖D_i‖, the driving term
+        D_i = Σ_j a_j k(θ_j, θ_i) ∇log ρ(θ_j) of the Stein direction (a_j = 1/n,
+        or the normalised importance weights of discrete SVGD); NaN in SGD.
+      driving_norm_median: (T,) median of ‖D_i‖; NaN in SGD.
+      repulsion_norm_mean: (T,) mean of ‖R_i‖, the repulsive term
+        R_i = Σ_j a_j ∇_{θ_j} k(θ_j, θ_i); NaN in SGD.
+      repulsion_norm_median: (T,) median of ‖R_i‖; NaN in SGD.
+      score_norm_median: (T,) median of ‖∇log ρ(θ_i)‖ over finite particles
+        (both phases: in SGD the score is the direction).
+      direction_norm_mean: (T,) mean ‖φ_i‖ of the direction handed to the
+        optimizer (D + R in SVGD, the score in SGD); displacement /
+        (learning_rate · direction_norm_mean) is the optimizer's gain (1 for
+        plain SGD; Adam's per-coordinate normalisation makes it large where
+        gradients are small).
+      displacement_per_coordinate: (T, d) mean over particles of |Δθ_ik|.
+      near_zero_share: (T,) share of the particles whose score norm is at most
+        near_zero_threshold, i.e. that feel almost no gradient.
+      near_zero_threshold: (T,) τ = max(1e-3 · m, 1e-12), m the median of the
+        nonzero score norms at the first iteration of the phase
+        (`mjstamp.svgd.near_zero_threshold`); constant within a phase.
     """
 
     logdensity_mean: np.ndarray
@@ -159,6 +181,15 @@ class StampDiagnostics(NamedTuple):
     displacement: np.ndarray
     n_nonfinite: np.ndarray
     step_seconds: np.ndarray
+    driving_norm_mean: np.ndarray
+    driving_norm_median: np.ndarray
+    repulsion_norm_mean: np.ndarray
+    repulsion_norm_median: np.ndarray
+    score_norm_median: np.ndarray
+    direction_norm_mean: np.ndarray
+    displacement_per_coordinate: np.ndarray
+    near_zero_share: np.ndarray
+    near_zero_threshold: np.ndarray
 
 
 class StampResult(NamedTuple):
@@ -245,6 +276,15 @@ class IterationRecord(NamedTuple):
     displacement: Any
     n_nonfinite: Any
     step_seconds: Any
+    driving_norm_mean: Any
+    driving_norm_median: Any
+    repulsion_norm_mean: Any
+    repulsion_norm_median: Any
+    score_norm_median: Any
+    direction_norm_mean: Any
+    displacement_per_coordinate: Any
+    near_zero_share: Any
+    near_zero_threshold: Any
 
 
 def run_stamp(
@@ -327,7 +367,7 @@ def run_stamp(
         )
     return StampResult(
         particles=state.particles, svgd_particles=svgd.particles,
-        diagnostics=_assemble(loop.rows), svgd_iters=svgd_iters,
+        diagnostics=_assemble(loop.rows, particles.shape[1]), svgd_iters=svgd_iters,
         sgd_iters=len(loop.rows) - svgd_iters,
         svgd_converged=svgd_converged, sgd_converged=sgd_converged,
     )  # fmt: skip
@@ -381,13 +421,21 @@ class _Loop:
         name = "svgd" if phase == PHASE_SVGD else "sgd"
         step = jax.jit(step) if self.jit is None else self.jit(step, state, self.key, name)
         means, moves = [], []
+        threshold = None  # near-zero score norm, fixed at the phase's first iteration
         every = max(1, max_iters // 10)
         self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
         for t in range(1, max_iters + 1):
             started = time.perf_counter()
             self.key, sub = jax.random.split(self.key)
             state, info = step(state, sub)
-            row = _fetch(info, phase)._replace(step_seconds=time.perf_counter() - started)
+            row, score_norm = _fetch(info, phase)
+            row = row._replace(step_seconds=time.perf_counter() - started)
+            if threshold is None:
+                threshold = float(near_zero_threshold(score_norm, xp=np))
+            row = row._replace(
+                near_zero_share=float(near_zero_share(score_norm, threshold, xp=np)),
+                near_zero_threshold=threshold,
+            )
             if not self.rows and int(row.n_nonfinite) == self.n:
                 raise ValueError(
                     f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {self.n} "
@@ -414,29 +462,50 @@ class _Loop:
         return state, False
 
 
-def _fetch(info: StepInfo, phase: int) -> IterationRecord:
-    """The iteration's record from its StepInfo, on the host (waits for the step)."""
-    return jax.device_get(
-        IterationRecord(
-            logdensity_mean=info.logdensity_mean,
-            logdensity_max=info.logdensity_max,
-            bandwidth=info.bandwidth,
-            phase=phase,
-            learning_rate=info.learning_rate,
-            displacement=info.displacement,
-            n_nonfinite=info.n_nonfinite,
-            step_seconds=None,
+def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
+    """The iteration's record and its (n,) score norms, on the host (waits for the step).
+
+    The record's step_seconds and near-zero fields are left for the loop to fill.
+    N.B. everything derived from the (n,) score norms is computed here in numpy: a
+    jnp call outside the step would be one more dispatch per iteration.
+    """
+    record, score_norm = jax.device_get(
+        (
+            IterationRecord(
+                logdensity_mean=info.logdensity_mean,
+                logdensity_max=info.logdensity_max,
+                bandwidth=info.bandwidth,
+                phase=phase,
+                learning_rate=info.learning_rate,
+                displacement=info.displacement,
+                n_nonfinite=info.n_nonfinite,
+                step_seconds=None,
+                driving_norm_mean=info.driving_norm_mean,
+                driving_norm_median=info.driving_norm_median,
+                repulsion_norm_mean=info.repulsion_norm_mean,
+                repulsion_norm_median=info.repulsion_norm_median,
+                score_norm_median=None,
+                direction_norm_mean=info.direction_norm_mean,
+                displacement_per_coordinate=info.displacement_per_coordinate,
+                near_zero_share=None,
+                near_zero_threshold=None,
+            ),
+            info.score_norm,
         )
     )
+    finite = score_norm[np.isfinite(score_norm)]
+    median = float(np.median(finite)) if finite.size else math.nan
+    return record._replace(score_norm_median=median), score_norm
 
 
 # dtype of each StampDiagnostics column; bandwidth is stacked apart (its width g may differ
-# between phases: SGD has none).
+# between phases: SGD has none), and so is displacement_per_coordinate (its width is d).
 _COLUMN_DTYPES = {"phase": np.int8, "n_nonfinite": int}
+_WIDE = ("bandwidth", "displacement_per_coordinate")
 
 
-def _assemble(rows: list[IterationRecord]) -> StampDiagnostics:
-    """Stacks the records field by field into `StampDiagnostics` (T rows)."""
+def _assemble(rows: list[IterationRecord], dim: int) -> StampDiagnostics:
+    """Stacks the records field by field into `StampDiagnostics` (T rows, d = dim)."""
     g = max((np.size(r.bandwidth) for r in rows), default=0)
 
     def bandwidth(r):
@@ -446,7 +515,12 @@ def _assemble(rows: list[IterationRecord]) -> StampDiagnostics:
     columns = {
         name: np.array([getattr(r, name) for r in rows], dtype=_COLUMN_DTYPES.get(name, float))
         for name in IterationRecord._fields
-        if name != "bandwidth"
+        if name not in _WIDE
     }
     bandwidths = np.array([bandwidth(r) for r in rows]).reshape(len(rows), g)
-    return StampDiagnostics(bandwidth=bandwidths, **columns)
+    per_coordinate = np.array(
+        [r.displacement_per_coordinate for r in rows], dtype=float
+    ).reshape(len(rows), dim)
+    return StampDiagnostics(
+        bandwidth=bandwidths, displacement_per_coordinate=per_coordinate, **columns
+    )

@@ -49,9 +49,19 @@ __all__ = [
     "build_sgd_step",
     "stein_direction",
     "importance_log_weights",
+    "NEAR_ZERO_RTOL",
+    "NEAR_ZERO_ATOL",
+    "near_zero_threshold",
+    "near_zero_share",
 ]
 
 LogDensityFn = Callable[[jax.Array], Any]  # (n, d) -> (n,) or ((n,), (n, f))
+
+# "Near zero" for a score: relative to the typical score of the particles that do feel a
+# gradient, so that it is free of the scale of θ and of log ρ; the absolute floor only
+# decides when no particle feels one (it is ~0 in any units a task would use).
+NEAR_ZERO_RTOL = 1e-3
+NEAR_ZERO_ATOL = 1e-12
 
 
 class SVGDState(NamedTuple):
@@ -81,6 +91,20 @@ class StepInfo(NamedTuple):
       displacement: () mean over particles of ‖θ_i(new) − θ_i‖.
       n_nonfinite: () number of particles whose log ρ or gradient was NaN/inf;
         they get zero score and zero weight this step.
+      score_norm: (n,) ‖∇log ρ(θ_i)‖ per particle, NaN where it is not finite.
+      driving_norm_mean: () mean over particles of ‖D_i‖, the driving term
+        D_i = Σ_j a_j k(θ_j, θ_i) ∇log ρ(θ_j) (a_j = 1/n for SVGD, the
+        normalised importance weights for discrete SVGD); NaN for SGD.
+      driving_norm_median: () median of ‖D_i‖; NaN for SGD.
+      repulsion_norm_mean: () mean over particles of ‖R_i‖, the repulsive term
+        R_i = Σ_j a_j ∇_{θ_j} k(θ_j, θ_i) (in θ-space for a feature kernel);
+        NaN for SGD.
+      repulsion_norm_median: () median of ‖R_i‖; NaN for SGD.
+      direction_norm_mean: () mean ‖φ_i‖ of the direction handed to the
+        optimizer (φ = D + R for SVGD, the score for SGD); the optimizer's gain
+        is displacement / (learning_rate · direction_norm_mean).
+      displacement_per_coordinate: (d,) mean over particles of |Δθ_ik|, the
+        step actually taken along each coordinate k.
     """
 
     logdensity: jax.Array
@@ -91,6 +115,13 @@ class StepInfo(NamedTuple):
     learning_rate: jax.Array
     displacement: jax.Array
     n_nonfinite: jax.Array
+    score_norm: jax.Array
+    driving_norm_mean: jax.Array
+    driving_norm_median: jax.Array
+    repulsion_norm_mean: jax.Array
+    repulsion_norm_median: jax.Array
+    direction_norm_mean: jax.Array
+    displacement_per_coordinate: jax.Array
 
 
 def init(particles: jax.Array, optimizer: optax.GradientTransformation) -> SVGDState:
@@ -200,6 +231,51 @@ def importance_log_weights(
     return jnp.where(ok, jax.nn.log_softmax(safe), -jnp.inf)
 
 
+def near_zero_threshold(score_norm: jax.Array, *, xp: Any = jnp) -> jax.Array:
+    """The score norm below which a particle counts as feeling no gradient.
+
+    τ = max(NEAR_ZERO_RTOL · m, NEAR_ZERO_ATOL), with m the median of the finite
+    score norms above NEAR_ZERO_ATOL: 1e-3 of the typical particle that feels a
+    gradient. The median leaves out the particles with a zero score so that a
+    landscape where most particles sit on a plateau still gets a reference
+    from those that do not; τ = NEAR_ZERO_ATOL when none does. `run_stamp` takes
+    τ from the first iteration of each phase and keeps it for the phase.
+
+    Args:
+      score_norm: (n,) ‖∇log ρ(θ_i)‖, NaN where not finite (`StepInfo.score_norm`).
+      xp: `jax.numpy` (jit-able) or `numpy` (on the host, no device dispatch).
+
+    Returns:
+      () threshold τ.
+    """
+    s = xp.asarray(score_norm)
+    felt = xp.isfinite(s) & (s > NEAR_ZERO_ATOL)
+    if xp is jnp:
+        median = jnp.nanmedian(jnp.where(felt, s, jnp.nan))
+    else:  # numpy warns on an all-NaN nanmedian
+        median = xp.median(s[felt]) if felt.any() else xp.nan
+    return xp.where(
+        xp.isnan(median), NEAR_ZERO_ATOL, xp.maximum(NEAR_ZERO_RTOL * median, NEAR_ZERO_ATOL)
+    )
+
+
+def near_zero_share(score_norm: jax.Array, threshold: Any, *, xp: Any = jnp) -> jax.Array:
+    """Share of the n particles whose score norm is at most `threshold`.
+
+    Particles with a non-finite score are not counted as near zero (they are
+    `n_nonfinite`).
+
+    Args:
+      score_norm: (n,) ‖∇log ρ(θ_i)‖, NaN where not finite.
+      threshold: () τ, e.g. from `near_zero_threshold`.
+      xp: `jax.numpy` or `numpy`.
+
+    Returns:
+      () share in [0, 1].
+    """
+    return xp.mean(xp.asarray(score_norm) <= threshold)
+
+
 def stein_direction(
     logdensity_fn: LogDensityFn,
     kernel: Kernel,
@@ -226,7 +302,8 @@ def stein_direction(
         features when the kernel reads features from the log density.
 
     Returns:
-      (phi (n, d), info) with info.learning_rate and info.displacement NaN.
+      (phi (n, d), info) with info.learning_rate, info.displacement and
+      info.displacement_per_coordinate NaN (the optimizer sets them).
 
     References:
       STAMP eq. (1), eq. (4), Algorithm 1 line 6.
@@ -257,24 +334,47 @@ def stein_direction(
         a = jnp.exp(jax.lax.stop_gradient(log_w))
     a = a.astype(x.dtype)
     terms = kernel.evaluate(x, a, features=features)
-    # φ_i = Σ_j a_j k_ji s_j + Σ_j a_j ∇_{x_j} k_ji: one n×n product per term.
-    phi = (a[:, None] * terms.gram).T @ score + terms.repulsion
-    info = _info(logp, ok, flat_bandwidths(terms.params), a)
+    # φ_i = Σ_j a_j k_ji s_j + Σ_j a_j ∇_{x_j} k_ji: one n×n product per term. The two
+    # terms are kept apart only for their norms (O(n d) on top of the O(n² d) kernel).
+    driving = (a[:, None] * terms.gram).T @ score
+    phi = driving + terms.repulsion
+    info = _info(
+        logp, ok, score, flat_bandwidths(terms.params), a, phi,
+        driving=driving, repulsion=terms.repulsion,
+    )  # fmt: skip
     return phi, info
 
 
-def _info(logp, ok, bandwidth, weights) -> StepInfo:
+def _info(logp, ok, score, bandwidth, weights, direction, *, driving=None, repulsion=None):
+    """StepInfo of a step at the particles it starts from (optimizer fields NaN)."""
     count = jnp.sum(ok)
     mean = jnp.sum(jnp.where(ok, logp, 0.0)) / jnp.maximum(count, 1)
+    nan = jnp.asarray(jnp.nan, logp.dtype)
+
+    def norms(v):  # (mean, median) over particles of ‖v_i‖; NaN for a term SGD lacks
+        if v is None:
+            return nan, nan
+        r = jnp.linalg.norm(v, axis=1)
+        return jnp.mean(r), jnp.median(r)
+
+    d_mean, d_median = norms(driving)
+    r_mean, r_median = norms(repulsion)
     return StepInfo(
         logdensity=logp,
         logdensity_mean=jnp.where(count > 0, mean, jnp.nan),
         logdensity_max=jnp.max(jnp.where(ok, logp, -jnp.inf)),
         bandwidth=bandwidth,
         weights=weights,
-        learning_rate=jnp.asarray(jnp.nan, logp.dtype),
-        displacement=jnp.asarray(jnp.nan, logp.dtype),
+        learning_rate=nan,
+        displacement=nan,
         n_nonfinite=logp.shape[0] - count,
+        score_norm=jnp.where(ok, jnp.linalg.norm(score, axis=1), jnp.nan),
+        driving_norm_mean=d_mean,
+        driving_norm_median=d_median,
+        repulsion_norm_mean=r_mean,
+        repulsion_norm_median=r_median,
+        direction_norm_mean=jnp.mean(jnp.linalg.norm(direction, axis=1)),
+        displacement_per_coordinate=jnp.full(direction.shape[1:], jnp.nan, logp.dtype),
     )
 
 
@@ -300,6 +400,7 @@ def _apply(optimizer, state: SVGDState, direction: jax.Array, info: StepInfo):
     info = info._replace(
         learning_rate=_learning_rate(opt_state),
         displacement=jnp.mean(jnp.linalg.norm(updates, axis=1)),
+        displacement_per_coordinate=jnp.mean(jnp.abs(updates), axis=0),
     )
     return SVGDState(particles, opt_state), info
 
@@ -426,8 +527,11 @@ def build_sgd_step(
             logp, score = _logp_and_score(logdensity_fn, state.particles)
         ok = _finite_rows(logp, score)
         n = logp.shape[0]
-        info = _info(logp, ok, jnp.zeros((0,), logp.dtype), jnp.full((n,), 1.0 / n))
-        return _apply(optimizer, state, _zero_rows(score, ok), info)
+        score = _zero_rows(score, ok)
+        info = _info(
+            logp, ok, score, jnp.zeros((0,), logp.dtype), jnp.full((n,), 1.0 / n), score
+        )
+        return _apply(optimizer, state, score, info)
 
     return step
 
