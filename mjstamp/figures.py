@@ -2,7 +2,8 @@
 
     result = solve(task, config)
     save_figures(result, Path("out"))  # -> plans_histogram.png, plans_topdown.png,
-                                       #    loss.png and, for 2-D θ, landscape.png
+                                       #    loss.png, svgd_diagnostics.png and,
+                                       #    for 2-D θ, landscape.png
 
 Each figure has a `*_figure(result) -> Figure` builder (inspectable in tests
 and notebooks) and is saved through the Agg canvas directly: no pyplot, no
@@ -85,7 +86,7 @@ def save_figures(
 
     Returns:
       Paths of the files written, in the order plans_histogram.png,
-      plans_topdown.png, loss.png[, landscape.png].
+      plans_topdown.png, loss.png, svgd_diagnostics.png[, landscape.png].
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -93,6 +94,7 @@ def save_figures(
         ("plans_histogram.png", lambda: histogram_figure(result)),
         ("plans_topdown.png", lambda: topdown_figure(result)),
         ("loss.png", lambda: loss_figure(result)),
+        ("svgd_diagnostics.png", lambda: diagnostics_figure(result)),
     ]
     if landscape and result.task.dim == 2:
         figures.append(
@@ -220,15 +222,7 @@ def loss_figure(result) -> Figure:
         ax.text(0.5, 0.5, "no iterations run", ha="center", va="center",
                 transform=ax.transAxes)
         return fig
-    names = {0: ("SVGD", "#dbe9f6"), 1: ("SGD", "#fde5cc")}
-    # Contiguous runs of one phase (SVGD then SGD; either may be empty).
-    edges = np.flatnonzero(np.diff(phase)) + 1
-    for run in np.split(np.arange(len(phase)), edges):
-        label, color = names.get(int(phase[run[0]]), (f"phase {phase[run[0]]}", "#eeeeee"))
-        lo, hi = it[run[0]] - 0.5, it[run[-1]] + 0.5
-        ax.axvspan(lo, hi, color=color, zorder=0)
-        ax.text((lo + hi) / 2, 0.97, f"{label}\n{len(run)} iterations", ha="center", va="top",
-                transform=ax.get_xaxis_transform(), fontsize=9)
+    _shade_phases(ax, phase)
     ax.plot(it, mean, color="C0", label="mean over particles")
     ax.plot(it, best, color="C3", label="best particle")
     finite = np.concatenate([mean[np.isfinite(mean)], best[np.isfinite(best)]])
@@ -243,6 +237,142 @@ def loss_figure(result) -> Figure:
     ax.grid(alpha=0.3)
     ax.legend(loc="best")
     return fig
+
+
+def _shade_phases(ax, phase: np.ndarray, *, label: bool = True) -> None:
+    """Shades the SVGD and SGD iterations of an axes over iterations 1..T, and names them."""
+    names = {0: ("SVGD", "#dbe9f6"), 1: ("SGD", "#fde5cc")}
+    it = np.arange(1, len(phase) + 1)
+    # Contiguous runs of one phase (SVGD then SGD; either may be empty).
+    edges = np.flatnonzero(np.diff(phase)) + 1
+    for run in np.split(np.arange(len(phase)), edges):
+        name, color = names.get(int(phase[run[0]]), (f"phase {phase[run[0]]}", "#eeeeee"))
+        lo, hi = it[run[0]] - 0.5, it[run[-1]] + 0.5
+        ax.axvspan(lo, hi, color=color, zorder=0)
+        if label:
+            ax.text((lo + hi) / 2, 0.97, f"{name}\n{len(run)} iterations", ha="center",
+                    va="top", transform=ax.get_xaxis_transform(), fontsize=9)
+
+
+# ----------------------------------------------------------------------------
+# svgd_diagnostics.png: why particles move, or do not.
+
+
+def diagnostics_figure(result) -> Figure:
+    """What drives the particles at each iteration, SVGD and SGD phases shaded.
+
+    Four panels over iterations: the norms of the driving term
+    D_i = Σ_j a_j k_ji ∇log ρ(θ_j) and of the repulsive term R_i = Σ_j a_j ∇_{θ_j} k_ji
+    (mean and median over particles, with the median score norm ‖∇log ρ(θ_i)‖
+    for scale); the kernel bandwidth of each group; the step the optimizer
+    took, mean ‖Δθ_i‖ and per coordinate, next to ε · mean ‖φ_i‖, the step of
+    plain gradient ascent (their ratio is the optimizer's gain); and the share
+    of particles whose score is near zero (`StampDiagnostics.near_zero_share`).
+
+    Args:
+      result: anything with `diagnostics` (a `StampDiagnostics`): a
+        `SolveResult` or a `StampResult`; a `task` gives the title and the
+        coordinate names.
+
+    Returns:
+      The Figure (2 × 2 panels).
+
+    References:
+      STAMP eq. (1), (4) (the two terms), App. B-C (bandwidths), Fig. 10.
+    """
+    d = result.diagnostics
+    phase = np.asarray(d.phase)
+    it = np.arange(1, len(phase) + 1)
+    task = getattr(result, "task", None)
+    fig = Figure(figsize=(12, 7.5), layout="constrained")
+    axes = fig.subplots(2, 2, sharex=True)
+    (terms, bands), (steps, stalled) = axes
+    title = "SVGD diagnostics"
+    if task is not None:
+        title = f"{task.name}: {title}"
+    fig.suptitle(f"{title} ({d.displacement_per_coordinate.shape[1]}-D θ)")
+    titles = (
+        (terms, "driving term ‖Σ a_j k_ji ∇log ρ_j‖ vs repulsive term ‖Σ a_j ∇k_ji‖",
+         "norm"),
+        (bands, "kernel bandwidth per group", "bandwidth s_g"),
+        (steps, "step after the optimizer", "step  ‖Δθ‖  (θ units)"),
+        (stalled, "particles whose score is near zero", "share of particles"),
+    )
+    for ax, name, ylabel in titles:
+        ax.set_title(name, fontsize=10)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    for ax in (steps, stalled):
+        ax.set_xlabel("iteration")
+    if len(it) == 0:
+        for ax in axes.ravel():
+            ax.text(0.5, 0.5, "no iterations run", ha="center", va="center",
+                    transform=ax.transAxes)
+        return fig
+    for ax in axes.ravel():
+        _shade_phases(ax, phase, label=ax is terms or ax is bands)
+        ax.set_xlim(0.5, it[-1] + 0.5)
+
+    def line(ax, y, **kw):
+        y = np.asarray(y, float)
+        if np.any(np.isfinite(y)):
+            ax.plot(it, y, **kw)
+        return y
+
+    drawn = [
+        line(terms, d.driving_norm_mean, color="C0", label="driving, mean"),
+        line(terms, d.driving_norm_median, color="C0", ls="--", label="driving, median"),
+        line(terms, d.repulsion_norm_mean, color="C3", label="repulsive, mean"),
+        line(terms, d.repulsion_norm_median, color="C3", ls="--", label="repulsive, median"),
+        line(terms, d.score_norm_median, color="0.35", ls=":",
+             label="score ‖∇log ρ(θ_i)‖, median"),
+    ]
+    _log_axis(terms, np.concatenate(drawn))
+    terms.legend(loc="lower left", fontsize=8)
+
+    bandwidth = np.asarray(d.bandwidth, float)
+    if bandwidth.shape[1] and np.any(np.isfinite(bandwidth)):
+        for g in range(bandwidth.shape[1]):
+            line(bands, bandwidth[:, g], color=f"C{g}", label=f"group {g}")
+        _log_axis(bands, bandwidth.ravel())
+        bands.legend(loc="lower left", fontsize=8)
+    else:
+        bands.text(0.5, 0.5, "no kernel", ha="center", va="center", transform=bands.transAxes)
+
+    per_coordinate = np.asarray(d.displacement_per_coordinate, float)
+    names = _axis_names(task) if task is not None else []
+    if len(names) != per_coordinate.shape[1]:
+        names = [f"θ[{k}]" for k in range(per_coordinate.shape[1])]
+    drawn = [line(steps, d.displacement, color="k", lw=1.8, label="mean ‖Δθ_i‖")]
+    plain = np.asarray(d.learning_rate, float) * np.asarray(d.direction_norm_mean, float)
+    drawn.append(line(steps, plain, color="k", ls="--", lw=1.2,
+                      label="ε · mean ‖φ_i‖ (plain gradient step)"))
+    shown = min(per_coordinate.shape[1], 8)  # more lines than colors say nothing
+    for k in range(shown):
+        drawn.append(line(steps, per_coordinate[:, k], color=f"C{k}", lw=0.8, alpha=0.8,
+                          label=f"mean |Δ{names[k]}|"))
+    _log_axis(steps, np.concatenate(drawn))
+    steps.legend(loc="lower left", fontsize=7, ncols=2)
+
+    share = line(stalled, d.near_zero_share, color="C2",
+                 label="‖∇log ρ(θ_i)‖ ≤ τ, τ = 1e-3 × median nonzero score at phase start")
+    stalled.set_ylim(-0.02, 1.02)
+    if np.any(np.isfinite(share)):
+        stalled.legend(loc="upper left", fontsize=8)
+    return fig
+
+
+def _log_axis(ax, values: np.ndarray, *, decades: float = 6.0) -> None:
+    """Log y scale when the positive finite values span more than a decade.
+
+    The axis shows at most `decades` below the largest value: a median score of
+    1e-18 (most particles on a plateau) would squeeze every other line flat; the
+    near-zero panel says how many particles are down there.
+    """
+    v = values[np.isfinite(values) & (values > 0)]
+    if v.size and v.max() > 10 * v.min():
+        ax.set_yscale("log")
+        ax.set_ylim(max(v.min(), v.max() * 10.0**-decades) / 2, v.max() * 2)
 
 
 # ----------------------------------------------------------------------------
@@ -819,6 +949,7 @@ __all__: list[str] = [
     "PlanDrawing",
     "best_verified",
     "default_grid",
+    "diagnostics_figure",
     "draw_topdown",
     "histogram_figure",
     "landscape_cost",

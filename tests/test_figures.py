@@ -75,7 +75,8 @@ def _is_readable(fig):
 def test_save_figures_writes_valid_non_blank_pngs(result, tmp_path):
     written = figures.save_figures(result, tmp_path, grid=12, progress=False)
     names = [p.name for p in written]
-    assert names == ["plans_histogram.png", "plans_topdown.png", "loss.png", "landscape.png"]
+    assert names == ["plans_histogram.png", "plans_topdown.png", "loss.png",
+                     "svgd_diagnostics.png", "landscape.png"]
     for path in written:
         assert path.is_file()
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -119,6 +120,48 @@ def test_loss_figure_shows_both_phases(result):
     np.testing.assert_allclose(mean, -result.diagnostics.logdensity_mean)
     texts = " ".join(t.get_text() for t in ax.texts)
     assert "SVGD" in texts and "SGD" in texts
+
+
+def _valleys(x):
+    """Batched log density: a flat plateau with three narrow Gaussian valleys (no MuJoCo)."""
+    import jax.numpy as jnp
+
+    centres = jnp.array([[1.0, 1.0], [-1.5, 0.5], [0.5, -1.5]])
+    d2 = jnp.sum((x[:, None] - centres[None]) ** 2, -1)
+    return 5.0 * jnp.sum(jnp.exp(-d2 / (2 * 0.15**2)), 1) - 5.0
+
+
+def test_diagnostics_figure_draws_what_the_steps_recorded(tmp_path):
+    """Driving vs repulsive norms, bandwidth, step and near-zero share, both phases named."""
+    import jax
+
+    from mjstamp import svgd
+
+    config = svgd.StampConfig(svgd_max_iters=12, sgd_max_iters=8, min_iters=20)
+    res = svgd.run_stamp(
+        _valleys, lambda k: jax.random.uniform(k, (16, 2), minval=-3, maxval=3), svgd.rbf(),
+        config, progress=False,
+    )  # fmt: skip
+    d = res.diagnostics
+    fig = figures.diagnostics_figure(res)
+    terms, bands, steps, stalled = _is_readable(fig)
+    assert "driving" in terms.get_title() and "repulsive" in terms.get_title()
+    assert [ax.get_xlabel() for ax in (steps, stalled)] == ["iteration", "iteration"]
+    lines = {line.get_label(): line.get_ydata() for line in terms.get_lines()}
+    np.testing.assert_allclose(lines["driving, mean"], d.driving_norm_mean)
+    np.testing.assert_allclose(lines["repulsive, median"], d.repulsion_norm_median)
+    assert np.all(np.isnan(lines["driving, mean"][12:]))  # SGD has no driving term
+    np.testing.assert_allclose(bands.get_lines()[0].get_ydata(), d.bandwidth[:, 0])
+    steps_drawn = {line.get_label(): line.get_ydata() for line in steps.get_lines()}
+    np.testing.assert_allclose(steps_drawn["mean ‖Δθ_i‖"], d.displacement)
+    np.testing.assert_allclose(steps_drawn["mean |Δθ[1]|"], d.displacement_per_coordinate[:, 1])
+    np.testing.assert_allclose(stalled.get_lines()[0].get_ydata(), d.near_zero_share)
+    # Most particles start on the plateau: the share the figure shows is large.
+    assert d.near_zero_share[0] > 0.5
+    texts = " ".join(t.get_text() for t in terms.texts)
+    assert "SVGD\n12 iterations" in texts and "SGD\n8 iterations" in texts
+    figures._save(fig, tmp_path / "d.png")
+    assert imread(tmp_path / "d.png")[..., :3].std() > 0.05
 
 
 @pytest.mark.slow
@@ -181,7 +224,7 @@ def test_a_solve_with_nothing_returned_still_draws(result, tmp_path):
     fig = figures.landscape_figure(empty, grid=4, progress=False)
     legend = [t.get_text() for t in fig.legends[0].get_texts()]
     assert legend == [f"not returned / failed ({n})"]
-    assert len(figures.save_figures(empty, tmp_path, grid=4, progress=False)) == 4
+    assert len(figures.save_figures(empty, tmp_path, grid=4, progress=False)) == 5
 
 
 @pytest.mark.slow
