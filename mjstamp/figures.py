@@ -266,8 +266,12 @@ def diagnostics_figure(result) -> Figure:
     (mean and median over particles, with the median score norm ‖∇log ρ(θ_i)‖
     for scale); the kernel bandwidth of each group; the step the optimizer
     took, mean ‖Δθ_i‖ and per coordinate, next to ε · mean ‖φ_i‖, the step of
-    plain gradient ascent (their ratio is the optimizer's gain); and the share
-    of particles whose score is near zero (`StampDiagnostics.near_zero_share`).
+    plain gradient ascent (their ratio is the optimizer's gain; ε is the rate
+    the optimizer state exposes, so for an Adam chained with a rescaling, as
+    solve's box-relative steps are, this line is off by that scale); and the
+    share of particles whose score is near zero (`StampDiagnostics.near_zero_share`),
+    with the median share of a particle's own score in its driving term
+    (`StampDiagnostics.self_weight_median`).
 
     Args:
       result: anything with `diagnostics` (a `StampDiagnostics`): a
@@ -296,7 +300,7 @@ def diagnostics_figure(result) -> Figure:
          "norm"),
         (bands, "kernel bandwidth per group", "bandwidth s_g"),
         (steps, "step after the optimizer", "step  ‖Δθ‖  (θ units)"),
-        (stalled, "particles whose score is near zero", "share of particles"),
+        (stalled, "scores near zero; own score's share of the driving term", "share"),
     )
     for ax, name, ylabel in titles:
         ax.set_title(name, fontsize=10)
@@ -355,9 +359,12 @@ def diagnostics_figure(result) -> Figure:
     steps.legend(loc="lower left", fontsize=7, ncols=2)
 
     share = line(stalled, d.near_zero_share, color="C2",
-                 label="‖∇log ρ(θ_i)‖ ≤ τ, τ = 1e-3 × median nonzero score at phase start")
+                 label="particles with ‖∇log ρ(θ_i)‖ ≤ τ "
+                       "(τ = 1e-3 × median nonzero score at phase start)")
+    own = line(stalled, d.self_weight_median, color="C4", ls="--",
+               label="a_i k_ii / Σ_j a_j k_ji, median (1/n: a particle follows the crowd)")
     stalled.set_ylim(-0.02, 1.02)
-    if np.any(np.isfinite(share)):
+    if np.any(np.isfinite(share)) or np.any(np.isfinite(own)):
         stalled.legend(loc="upper left", fontsize=8)
     return fig
 
@@ -578,8 +585,8 @@ def topdown_figure(result, *, columns: int = 4) -> Figure:
 
     Each panel draws the scene from the MjModel (geom footprints in xy, sites),
     the moving geoms at the start (faint) and at the end of the C replay, the
-    paths of the bodies in `task.display_hints["trace"]` (default: every body
-    with a joint), and for each geom pair (A, B) in `display_hints["force"]`
+    paths of the bodies in `problem.display["trace"]` (default: every body
+    with a joint), and for each geom pair (A, B) in `display["force"]`
     arrows of the contact force of A on B at a few frames. Poses, colours and
     forces come from `mjstamp.geometry`, as in the meshcat playback.
 
@@ -601,11 +608,11 @@ def topdown_figure(result, *, columns: int = 4) -> Figure:
         i = int(np.nanargmin(np.where(np.isfinite(result.cost), result.cost, np.inf)))
         chosen = [(f"{result.verified.plan[i]} (failed)", i)]
         subtitle = "no verified plan; lowest-cost particle shown"
-    trace = [task.scene.body(b) for b in task.display_hints.get("trace", [])]
+    trace = [task.scene.body(b) for b in task.display.get("trace", [])]
     if not trace:
         trace = [b for b in range(1, m.nbody) if m.body_jntnum[b] > 0]
     pairs = [(task.scene.geom(a), task.scene.geom(b))
-             for a, b in task.display_hints.get("force", [])]
+             for a, b in task.display.get("force", [])]
     drawings = [plan_drawing(m, plan_frames(result, i, pairs), trace) for _, i in chosen]
     titles = [f"{plan}\ncost {result.cost[i]:.3g} (particle {i})" for plan, i in chosen]
     return draw_topdown(m, drawings, titles, columns=columns,
@@ -615,7 +622,7 @@ def topdown_figure(result, *, columns: int = 4) -> Figure:
 def plan_frames(result, i: int, pairs=()) -> geometry.Frames:
     """Poses (and contact forces of `pairs`) at every state of particle i's C replay."""
     task, replay = result.task, result.replay
-    qpos0, qvel0, _ = task.inputs(task.unpack(result.theta[i : i + 1]), xp=np)
+    qpos0, qvel0, _ = task.inputs(result.theta[i : i + 1], xp=np)
     return geometry.replay_frames(
         task.scene.m, np.asarray(qpos0, np.float64)[0], replay.qpos[i],
         qvel0=np.asarray(qvel0, np.float64)[0],

@@ -156,6 +156,7 @@ def test_diagnostics_figure_draws_what_the_steps_recorded(tmp_path):
     np.testing.assert_allclose(steps_drawn["mean ‖Δθ_i‖"], d.displacement)
     np.testing.assert_allclose(steps_drawn["mean |Δθ[1]|"], d.displacement_per_coordinate[:, 1])
     np.testing.assert_allclose(stalled.get_lines()[0].get_ydata(), d.near_zero_share)
+    np.testing.assert_allclose(stalled.get_lines()[1].get_ydata(), d.self_weight_median)
     # Most particles start on the plateau: the share the figure shows is large.
     assert d.near_zero_share[0] > 0.5
     texts = " ".join(t.get_text() for t in terms.texts)

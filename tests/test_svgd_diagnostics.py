@@ -83,6 +83,8 @@ def test_diagnostics_match_a_hand_computation_on_a_2d_gaussian(weighted):
             rtol=1e-12,
         )
         np.testing.assert_allclose(info.direction_norm_mean, _norm_stats(phi)[0], rtol=1e-12)
+        gram = np.exp(-np.sum((X0[:, None] - X0[None]) ** 2, -1) / BANDWIDTH**2)
+        np.testing.assert_allclose(info.self_weight_median, np.median(a / (a @ gram)), rtol=1e-12)
         np.testing.assert_allclose(info.bandwidth, [BANDWIDTH])
         # optax.sgd(ε): the step is ε φ, per coordinate and in norm.
         np.testing.assert_allclose(
@@ -117,7 +119,7 @@ def test_run_stamp_records_the_terms_and_nan_where_sgd_has_none():
         assert d.displacement_per_coordinate.shape == (5, 2)
         assert np.all(d.displacement_per_coordinate > 0)
         for name in ("driving_norm_mean", "driving_norm_median", "repulsion_norm_mean",
-                     "repulsion_norm_median"):
+                     "repulsion_norm_median", "self_weight_median"):
             column = getattr(d, name)
             assert np.all(np.isfinite(column[:3])) and np.all(np.isnan(column[3:])), name
         # In SGD the direction is the score: displacement = ε · mean ‖score‖.

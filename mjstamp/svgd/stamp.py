@@ -171,6 +171,10 @@ class StampDiagnostics(NamedTuple):
       near_zero_threshold: (T,) τ = max(1e-3 · m, 1e-12), m the median of the
         nonzero score norms at the first iteration of the phase
         (`mjstamp.svgd.near_zero_threshold`); constant within a phase.
+      self_weight_median: (T,) median over particles of a_i k_ii / Σ_j a_j k_ji,
+        the share of a particle's own score in its driving term: near 1/n the
+        kernel averages every particle's score, so a particle in a narrow valley
+        follows the crowd rather than its valley; NaN in SGD.
     """
 
     logdensity_mean: np.ndarray
@@ -190,6 +194,7 @@ class StampDiagnostics(NamedTuple):
     displacement_per_coordinate: np.ndarray
     near_zero_share: np.ndarray
     near_zero_threshold: np.ndarray
+    self_weight_median: np.ndarray
 
 
 class StampResult(NamedTuple):
@@ -285,6 +290,7 @@ class IterationRecord(NamedTuple):
     displacement_per_coordinate: Any
     near_zero_share: Any
     near_zero_threshold: Any
+    self_weight_median: Any
 
 
 def run_stamp(
@@ -489,6 +495,7 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
                 displacement_per_coordinate=info.displacement_per_coordinate,
                 near_zero_share=None,
                 near_zero_threshold=None,
+                self_weight_median=info.self_weight_median,
             ),
             info.score_norm,
         )

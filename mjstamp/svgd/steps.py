@@ -105,6 +105,10 @@ class StepInfo(NamedTuple):
         is displacement / (learning_rate · direction_norm_mean).
       displacement_per_coordinate: (d,) mean over particles of |Δθ_ik|, the
         step actually taken along each coordinate k.
+      self_weight_median: () median over particles of a_i k_ii / Σ_j a_j k_ji,
+        the share of a particle's own score in its driving term (1/n when the
+        kernel is flat over all particles, 1 when no other particle is within
+        reach); NaN for SGD, which follows each particle's own score alone.
     """
 
     logdensity: jax.Array
@@ -122,6 +126,7 @@ class StepInfo(NamedTuple):
     repulsion_norm_median: jax.Array
     direction_norm_mean: jax.Array
     displacement_per_coordinate: jax.Array
+    self_weight_median: jax.Array
 
 
 def init(particles: jax.Array, optimizer: optax.GradientTransformation) -> SVGDState:
@@ -336,16 +341,23 @@ def stein_direction(
     terms = kernel.evaluate(x, a, features=features)
     # φ_i = Σ_j a_j k_ji s_j + Σ_j a_j ∇_{x_j} k_ji: one n×n product per term. The two
     # terms are kept apart only for their norms (O(n d) on top of the O(n² d) kernel).
-    driving = (a[:, None] * terms.gram).T @ score
+    kw = a[:, None] * terms.gram  # kw[j, i] = a_j k_ji
+    driving = kw.T @ score
     phi = driving + terms.repulsion
+    # Share of particle i's own score in its driving term's kernel weights.
+    total = jnp.sum(kw, axis=0)
+    own = jnp.where(total > 0, jnp.diagonal(kw) / jnp.where(total > 0, total, 1.0), jnp.nan)
     info = _info(
         logp, ok, score, flat_bandwidths(terms.params), a, phi,
-        driving=driving, repulsion=terms.repulsion,
+        driving=driving, repulsion=terms.repulsion, self_weight=own,
     )  # fmt: skip
     return phi, info
 
 
-def _info(logp, ok, score, bandwidth, weights, direction, *, driving=None, repulsion=None):
+def _info(
+    logp, ok, score, bandwidth, weights, direction, *, driving=None, repulsion=None,
+    self_weight=None,
+):
     """StepInfo of a step at the particles it starts from (optimizer fields NaN)."""
     count = jnp.sum(ok)
     mean = jnp.sum(jnp.where(ok, logp, 0.0)) / jnp.maximum(count, 1)
@@ -375,6 +387,7 @@ def _info(logp, ok, score, bandwidth, weights, direction, *, driving=None, repul
         repulsion_norm_median=r_median,
         direction_norm_mean=jnp.mean(jnp.linalg.norm(direction, axis=1)),
         displacement_per_coordinate=jnp.full(direction.shape[1:], jnp.nan, logp.dtype),
+        self_weight_median=nan if self_weight is None else jnp.nanmedian(self_weight),
     )
 
 
