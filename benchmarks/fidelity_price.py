@@ -37,13 +37,13 @@ def _task(name: str):
     return SUITE[name]()
 
 
-def _timed(task, theta, repeats: int):
+def _timed(problem, theta, repeats: int):
     """Compiles value-and-grad of Σ log ρ; returns (fn, compile s)."""
     import jax
     import jax.numpy as jnp
 
     def total(th):
-        logp = task.log_posterior(th)[0]
+        logp = problem.logdensity(th)[0]
         return jnp.sum(jnp.where(jnp.isfinite(logp), logp, 0.0))
 
     fn = jax.jit(jax.value_and_grad(total))
@@ -58,9 +58,9 @@ def measure(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
     import jax.numpy as jnp
 
     from mjstamp import seeding
-    from mjstamp.solve import SolveConfig, _mjx_divergence, calibrate
+    from mjstamp.solve import SolveConfig, calibrate, mjx_divergence
 
-    task = _task(name)
+    task = _task(name).build()
     theta, _ = seeding.seed_particles(task, jax.random.key(seed), particles)
     calibrated, cal = calibrate(task, theta, SolveConfig(allow_unfaithful=True))
     before = task.on_scene(task.scene.with_grad_options(gradient="unrolled", iterations=1,
@@ -72,8 +72,8 @@ def measure(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
     for key, t in models.items():
         fns[key], row[f"compile_{key}_s"] = _timed(t, theta_j, repeats)
         rollout = t.scene.rollout_fn(t.horizon, fields=("qpos",))
-        qpos = np.asarray(rollout(*t.inputs(t.unpack(theta_j)))["qpos"])
-        div = _mjx_divergence(t, theta, qpos)
+        qpos = np.asarray(rollout(*t.inputs(theta_j))["qpos"])
+        div = mjx_divergence(t, theta, qpos)
         row[f"divergence_{key}_p95_m"] = float(np.percentile(div, 95))
     times = {key: [] for key in models}
     for _ in range(repeats):

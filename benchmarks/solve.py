@@ -55,12 +55,23 @@ def _rollout_seconds_per_iteration(particles: int) -> tuple[float, float]:
 
     jax.config.update("jax_enable_x64", True)
     from mjstamp import tasks
-    from mjstamp.svgd.steps import _logp_and_score, _logp_score_features
 
-    task, _ = tasks.load("billiards", particles=particles)
-    theta = task.initial_particles(jax.random.key(0), particles)
-    svgd_eval = jax.jit(lambda t: _logp_score_features(task.log_posterior, t, "auto"))
-    sgd_eval = jax.jit(lambda t: _logp_and_score(task.log_posterior, t))
+    problem = tasks.load("billiards", particles=particles)[0].build()
+    theta = problem.init(jax.random.key(0), particles)
+
+    def score(t):
+        """Log ρ (n,) and its n gradients from one pullback (an SGD step's work)."""
+        logp, pullback = jax.vjp(lambda p: problem.logdensity(p)[0], t)
+        return logp, pullback(jax.numpy.ones_like(logp))[0]
+
+    def score_and_features(t):
+        """Log ρ, ψ and their Jacobians in forward mode (d = 2 tangents): an SVGD step's work."""
+        n, d = t.shape
+        tangents = jax.numpy.broadcast_to(jax.numpy.eye(d)[:, None, :], (d, n, d))
+        return jax.vmap(lambda v: jax.jvp(problem.logdensity, (t,), (v,)))(tangents)
+
+    svgd_eval = jax.jit(score_and_features)
+    sgd_eval = jax.jit(score)
     out = []
     for fn in (svgd_eval, sgd_eval):
         jax.block_until_ready(fn(theta))
@@ -83,9 +94,9 @@ def _pushing(max_pushes: list[int], as_json: bool) -> dict:
         row = {
             "max_pushes": k,
             "dimension": 7 * k,
-            "horizon": out["config"]["max_pushes"] * (out["config"]["approach_steps"]
-                                                     + out["config"]["push_steps"])
-            + out["config"]["settle_steps"],
+            "horizon": out["config"]["task"]["max_pushes"] * (
+                out["config"]["task"]["approach_steps"] + out["config"]["task"]["push_steps"])
+            + out["config"]["task"]["settle_steps"],
             "particles": out["particles"],
             "process_wall_s": wall,
             "solve_wall_time_s": out["wall_time_s"],

@@ -10,27 +10,15 @@ import argparse
 import json
 import os
 import sys
-from pathlib import Path
 
 from mjstamp.errors import MjstampError
 
-DEFAULT_CACHE = Path.home() / ".cache" / "mjstamp" / "jax"
-
 
 def configure_jax(*, precision: str = "float64") -> None:
-    """Process-wide JAX settings of the CLI: precision and compilation cache.
+    """The CLI's JAX settings: `mjstamp.configure` (float64, compilation cache)."""
+    import mjstamp
 
-    N.B. float64 is the default precision: float32 reverse-mode gradients
-    through MJX's constraint solver go NaN on contact (see
-    `mjstamp.scenes.gradsafe`). The persistent compilation cache turns a 20-45 s
-    compile of an MJX rollout into a few seconds in the next process.
-    """
-    import jax
-
-    jax.config.update("jax_enable_x64", precision == "float64")
-    cache = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(DEFAULT_CACHE)
-    jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    mjstamp.configure(precision=precision)
 
 
 def _load_scene(name: str, **kwargs):
@@ -45,24 +33,38 @@ def _load_scene(name: str, **kwargs):
 def _cmd_check(args) -> int:
     import dataclasses
 
-    from mjstamp.scenes.check import SCENE_CHECKS, CheckSpec, check_scene
+    from mjstamp import tasks
+    from mjstamp.scenes.check import CheckSpec, check_scene, check_task
 
     options = {} if args.iterations is None else {"iterations": args.iterations}
     if args.iterations is not None and args.iterations < 1:
         raise MjstampError(f"--iterations={args.iterations} must be >= 1")
     if args.gradient is not None:
         options["gradient"] = args.gradient
-    scene = _load_scene(args.scene, **options)
-    spec = SCENE_CHECKS.get(scene.name, CheckSpec())
-    if args.horizon is not None:
-        if args.horizon < 1:
-            raise MjstampError(f"--horizon={args.horizon} must be >= 1")
-        spec = dataclasses.replace(spec, horizon=args.horizon)
     if args.tolerance is not None and not args.tolerance > 0:
         raise MjstampError(f"--tolerance={args.tolerance} must be > 0 (metres)")
+    if args.horizon is not None and args.horizon < 1:
+        raise MjstampError(f"--horizon={args.horizon} must be >= 1")
+    if args.particles < 1:
+        raise MjstampError(f"--particles={args.particles} must be >= 1")
     say = (lambda msg: print(f"[check] {msg}", file=sys.stderr)) if not args.quiet else None
-    report = check_scene(scene, particles=args.particles, seed=args.seed, spec=spec,
-                         tolerance=args.tolerance, progress=say)
+    common = dict(particles=args.particles, seed=args.seed, tolerance=args.tolerance,
+                  progress=say)
+    if args.scene in tasks.names():
+        # A registered task: its own θ, bounds and horizon.
+        if args.horizon is not None:
+            raise MjstampError(f"--horizon: task {args.scene!r} has its own horizon; set it "
+                               "with the task's settings instead")
+        task, _ = tasks.load(args.scene)
+        problem = task.build()
+        problem = problem.on_scene(problem.scene.with_grad_options(**options))
+        report = check_task(problem, **common)
+    else:
+        scene = _load_scene(args.scene, **options)
+        spec = CheckSpec()
+        if args.horizon is not None:
+            spec = dataclasses.replace(spec, horizon=args.horizon)
+        report = check_scene(scene, spec=spec, **common)
     if args.json:
         print(json.dumps(report))
         return 0 if report["healthy"] else 1
@@ -122,7 +124,7 @@ def _parse_settings(task_name: str, pairs: list[str]) -> dict:
     import dataclasses
 
     from mjstamp import tasks
-    from mjstamp.solve import SolveConfig
+    from mjstamp.config import SolveConfig
 
     defaults = {f.name: (f.default, str(f.type)) for f in dataclasses.fields(SolveConfig)}
     defaults.update({k: (v, type(v).__name__) for k, v in tasks.default_config(task_name).items()})
@@ -137,6 +139,28 @@ def _parse_settings(task_name: str, pairs: list[str]) -> dict:
                 + ", ".join(sorted(defaults))
             )
         out[key] = _parse_value(key, value, *defaults[key])
+    return out
+
+
+def _task_options(args, task_name: str) -> dict:
+    """Settings from the flags tasks contribute (e.g. --max-pushes), for this task."""
+    from mjstamp import tasks
+
+    out = {}
+    for name, entry in tasks.entries().items():
+        for option in entry.options:
+            value = getattr(args, option.key, None)
+            if value is None:
+                continue
+            if name != task_name:
+                raise MjstampError(f"{option.flag}: task {task_name!r} has no such option "
+                                   f"(it is task {name!r}'s)")
+            try:
+                out[option.key] = option.type(value)
+            except MjstampError:
+                raise
+            except ValueError:
+                raise MjstampError(f"{option.flag}={value!r} is not valid") from None
     return out
 
 
@@ -165,26 +189,18 @@ def _print_table(summary: dict) -> None:
 
 
 def _cmd_solve(args) -> int:
-    from mjstamp import figures, modes, plans, tasks
-    from mjstamp.solve import solve, task_jit
+    from mjstamp import modes, plans, tasks
+    from mjstamp.solve import solve
 
     overrides = _parse_settings(args.task, args.set or [])
-    if args.max_pushes is not None:
-        if "max_pushes" not in tasks.default_config(args.task):
-            raise MjstampError(f"--max-pushes: task {args.task!r} has no pushes")
-        if args.max_pushes < 1:
-            raise MjstampError(f"--max-pushes={args.max_pushes} must be >= 1")
-        overrides["max_pushes"] = args.max_pushes
+    overrides.update(_task_options(args, args.task))
     if args.particles is not None:
         if args.particles < 2:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
         overrides["particles"] = args.particles
-    out = plans.check_writable(args.out) if args.out else None
-    task_keys = tasks.default_config(args.task)
-    task, config = tasks.load(
-        args.task, **{k: v for k, v in overrides.items() if k in task_keys}
-    )
-    config.update({k: v for k, v in overrides.items() if k not in task_keys})
+    if args.out:
+        plans.check_writable(args.out)
+    task, config = tasks.load(args.task, **overrides)
     progress = None if not args.quiet else False
     result = solve(task, config, seed=args.seed, progress=progress)
     coverage = None
@@ -194,10 +210,8 @@ def _cmd_solve(args) -> int:
                  if ok]
         coverage = modes.coverage(found, truth)
     summary = result.summary(coverage)
-    if out is not None:
-        written = plans.save(out, summary, result.arrays(), model=task.scene.m)
-        written += figures.save_figures(result, out, progress=progress,
-                                        jit=task_jit(result.task))
+    if args.out:
+        written = result.save(args.out, coverage=coverage, progress=progress)
         if not args.json:
             print(f"wrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     if args.json:
@@ -241,27 +255,20 @@ def _cmd_view(args) -> int:
         playback.close()
 
 
-def _cmd_skills(args) -> int:
-    from mjstamp.scenes import Scene
-    from mjstamp.skills import bank as bank_mod
-    from mjstamp.skills import pushing
+def _add_task_contributions(sub, solve) -> None:
+    """Flags of `solve` and commands that registered tasks contribute."""
+    from mjstamp import tasks
 
-    out = Path(args.out) if args.out else pushing.DEFAULT_BANK
-    scene = Scene.shipped("pushing")
-    setup = pushing.PushSetup.from_scene(scene)
-    say = (lambda msg: print(f"[skills] {msg}", file=sys.stderr)) if not args.quiet else None
-    demos = pushing.record_all(scene, setup)
-    bank = pushing.fit_bank(scene, setup, demos=demos, progress=say)
-    path = bank_mod.save(bank, out)
-    errors = pushing.fit_errors(scene, setup, bank, demos=demos)
-    if args.json:
-        print(json.dumps({"path": str(path), "fingerprint": bank.fingerprint, "errors": errors}))
-        return 0
-    print(f"wrote {path} ({len(bank.skills)} skills, fingerprint {bank.fingerprint})")
-    for name, e in errors.items():
-        print(f"{name:<16} reproduces its demonstrations to {e['rms_rel']:.2%} RMS of their "
-              f"extent; end error {e['end_rel']:.2%}")
-    return 0
+    for entry in tasks.entries().values():
+        for option in entry.options:
+            # N.B. parsed after argparse (in _task_options): argparse's own errors
+            # take two lines (usage, then the error); ours take one.
+            solve.add_argument(option.flag, dest=option.key, metavar=option.metavar,
+                               help=option.help)
+        for command in entry.commands:
+            parser = sub.add_parser(command.name, help=command.help)
+            command.add_arguments(parser)
+            parser.set_defaults(func=command.run)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -276,7 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="fidelity and gradient health of a scene against its own physics (exit 1 if "
         "unhealthy)",
     )
-    check.add_argument("scene", help="shipped scene name (e.g. billiards) or MJCF path")
+    check.add_argument("scene", help="registered task (its own particles and horizon), "
+                       "shipped scene or MJCF path (every joint's initial velocity varied)")
     check.add_argument("--particles", type=int, default=256, help="random particles")
     check.add_argument("--seed", type=int, default=0)
     check.add_argument(
@@ -302,8 +310,6 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("task", help="registered task name (see `mjstamp tasks`)")
     solve.add_argument("--particles", type=int, default=None, help="particles (plans) to move")
     solve.add_argument("--seed", type=int, default=0)
-    solve.add_argument("--max-pushes", type=int, metavar="K",
-                       help="pushing: plan up to K pushes (same as --set max_pushes=K)")
     solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here")
     solve.add_argument("--json", action="store_true", help="print one JSON object")
     solve.add_argument("--set", action="append", metavar="KEY=VALUE",
@@ -333,14 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="do not open the viewer in a browser")
     view.set_defaults(func=_cmd_view)
 
-    skills = sub.add_parser(
-        "skills", help="record the pushing demonstrations and fit the DMP skill bank"
-    )
-    skills.add_argument("--out", metavar="FILE",
-                        help="bank file to write (default: the cache the pushing task reads)")
-    skills.add_argument("--json", action="store_true")
-    skills.add_argument("--quiet", action="store_true")
-    skills.set_defaults(func=_cmd_skills)
+    _add_task_contributions(sub, solve)
 
     tasks = sub.add_parser("tasks", help="list the registered tasks")
     tasks.add_argument("--json", action="store_true")

@@ -316,57 +316,72 @@ def diagnostics_figure(result) -> Figure:
     for ax in axes.ravel():
         _shade_phases(ax, phase, label=ax is terms or ax is bands)
         ax.set_xlim(0.5, it[-1] + 0.5)
+    _terms_panel(terms, it, d)
+    _bandwidth_panel(bands, it, d)
+    _steps_panel(steps, it, d, task)
+    _stalled_panel(stalled, it, d)
+    return fig
 
-    def line(ax, y, **kw):
-        y = np.asarray(y, float)
-        if np.any(np.isfinite(y)):
-            ax.plot(it, y, **kw)
-        return y
 
+def _line(ax, it, y, **kw) -> np.ndarray:
+    """Plots y over iterations where any of it is finite; returns y as floats."""
+    y = np.asarray(y, float)
+    if np.any(np.isfinite(y)):
+        ax.plot(it, y, **kw)
+    return y
+
+
+def _terms_panel(ax, it, d) -> None:
     drawn = [
-        line(terms, d.driving_norm_mean, color="C0", label="driving, mean"),
-        line(terms, d.driving_norm_median, color="C0", ls="--", label="driving, median"),
-        line(terms, d.repulsion_norm_mean, color="C3", label="repulsive, mean"),
-        line(terms, d.repulsion_norm_median, color="C3", ls="--", label="repulsive, median"),
-        line(terms, d.score_norm_median, color="0.35", ls=":",
-             label="score ‖∇log ρ(θ_i)‖, median"),
+        _line(ax, it, d.driving_norm_mean, color="C0", label="driving, mean"),
+        _line(ax, it, d.driving_norm_median, color="C0", ls="--", label="driving, median"),
+        _line(ax, it, d.repulsion_norm_mean, color="C3", label="repulsive, mean"),
+        _line(ax, it, d.repulsion_norm_median, color="C3", ls="--",
+              label="repulsive, median"),
+        _line(ax, it, d.score_norm_median, color="0.35", ls=":",
+              label="score ‖∇log ρ(θ_i)‖, median"),
     ]
-    _log_axis(terms, np.concatenate(drawn))
-    terms.legend(loc="lower left", fontsize=8)
+    _log_axis(ax, np.concatenate(drawn))
+    ax.legend(loc="lower left", fontsize=8)
 
+
+def _bandwidth_panel(ax, it, d) -> None:
     bandwidth = np.asarray(d.bandwidth, float)
     if bandwidth.shape[1] and np.any(np.isfinite(bandwidth)):
         for g in range(bandwidth.shape[1]):
-            line(bands, bandwidth[:, g], color=f"C{g}", label=f"group {g}")
-        _log_axis(bands, bandwidth.ravel())
-        bands.legend(loc="lower left", fontsize=8)
+            _line(ax, it, bandwidth[:, g], color=f"C{g}", label=f"group {g}")
+        _log_axis(ax, bandwidth.ravel())
+        ax.legend(loc="lower left", fontsize=8)
     else:
-        bands.text(0.5, 0.5, "no kernel", ha="center", va="center", transform=bands.transAxes)
+        ax.text(0.5, 0.5, "no kernel", ha="center", va="center", transform=ax.transAxes)
 
+
+def _steps_panel(ax, it, d, task) -> None:
     per_coordinate = np.asarray(d.displacement_per_coordinate, float)
     names = _axis_names(task) if task is not None else []
     if len(names) != per_coordinate.shape[1]:
         names = [f"θ[{k}]" for k in range(per_coordinate.shape[1])]
-    drawn = [line(steps, d.displacement, color="k", lw=1.8, label="mean ‖Δθ_i‖")]
+    drawn = [_line(ax, it, d.displacement, color="k", lw=1.8, label="mean ‖Δθ_i‖")]
     plain = np.asarray(d.learning_rate, float) * np.asarray(d.direction_norm_mean, float)
-    drawn.append(line(steps, plain, color="k", ls="--", lw=1.2,
-                      label="ε · mean ‖φ_i‖ (plain gradient step)"))
+    drawn.append(_line(ax, it, plain, color="k", ls="--", lw=1.2,
+                       label="ε · mean ‖φ_i‖ (plain gradient step)"))
     shown = min(per_coordinate.shape[1], 8)  # more lines than colors say nothing
     for k in range(shown):
-        drawn.append(line(steps, per_coordinate[:, k], color=f"C{k}", lw=0.8, alpha=0.8,
-                          label=f"mean |Δ{names[k]}|"))
-    _log_axis(steps, np.concatenate(drawn))
-    steps.legend(loc="lower left", fontsize=7, ncols=2)
+        drawn.append(_line(ax, it, per_coordinate[:, k], color=f"C{k}", lw=0.8, alpha=0.8,
+                           label=f"mean |Δ{names[k]}|"))
+    _log_axis(ax, np.concatenate(drawn))
+    ax.legend(loc="lower left", fontsize=7, ncols=2)
 
-    share = line(stalled, d.near_zero_share, color="C2",
-                 label="particles with ‖∇log ρ(θ_i)‖ ≤ τ "
-                       "(τ = 1e-3 × median nonzero score at phase start)")
-    own = line(stalled, d.self_weight_median, color="C4", ls="--",
-               label="a_i k_ii / Σ_j a_j k_ji, median (1/n: a particle follows the crowd)")
-    stalled.set_ylim(-0.02, 1.02)
+
+def _stalled_panel(ax, it, d) -> None:
+    share = _line(ax, it, d.near_zero_share, color="C2",
+                  label="particles with ‖∇log ρ(θ_i)‖ ≤ τ "
+                        "(τ = 1e-3 × median nonzero score at phase start)")
+    own = _line(ax, it, d.self_weight_median, color="C4", ls="--",
+                label="a_i k_ii / Σ_j a_j k_ji, median (1/n: a particle follows the crowd)")
+    ax.set_ylim(-0.02, 1.02)
     if np.any(np.isfinite(share)) or np.any(np.isfinite(own)):
-        stalled.legend(loc="upper left", fontsize=8)
-    return fig
+        ax.legend(loc="upper left", fontsize=8)
 
 
 def _log_axis(ax, values: np.ndarray, *, decades: float = 6.0) -> None:

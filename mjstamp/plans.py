@@ -11,7 +11,6 @@ gradient-safe ones) and reads contacts and success from that replay.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import os
 import tempfile
@@ -26,11 +25,18 @@ import numpy as np
 
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import write_atomic
-from mjstamp.scenes._mjx import mjx
+from mjstamp.scenes import mjx
 from mjstamp.scenes.fidelity import describe
 from mjstamp.scenes.rollout import replay as replay_c
+from mjstamp.tasks.declaration import Kind
+from mjstamp.tasks.problem import FIELDS, Decoded, Problem
 
-SCHEMA_VERSION = 2  # 2: scene.mjb, qpos0/qvel0/qvel/ctrl in trajectories.npz
+__all__ = ["Decoded", "Replay", "cost_c", "decode", "format_table", "group", "load",
+           "repair", "save", "simulate_c", "simulate_mjx"]
+
+# 2: scene.mjb, qpos0/qvel0/qvel/ctrl in trajectories.npz; 3: config split into task
+# and solve settings, fidelity, screen, repaired and source per plan.
+SCHEMA_VERSION = 3
 
 
 class Replay:
@@ -46,14 +52,15 @@ class Replay:
         contact exactly then for geoms without margin).
     """
 
-    def __init__(self, task, qpos: np.ndarray, source: str, *, qvel=None, ctrl=None):
-        self.task = task
-        self.scene = task.scene
+    def __init__(self, problem, qpos: np.ndarray, source: str, *, qvel=None, ctrl=None):
+        problem = _problem(problem)
+        self.problem = problem
+        self.scene = problem.scene
         self.source = source
         self.qpos = np.asarray(qpos, np.float64)
         self.qvel = None if qvel is None else np.asarray(qvel, np.float64)
         self.ctrl = None if ctrl is None else np.asarray(ctrl, np.float64)
-        self.xpos, self.site_xpos, self.contacts = _poses_and_contacts(task, self.qpos)
+        self.xpos, self.site_xpos, self.contacts = _poses_and_contacts(problem, self.qpos)
 
     def body_pos(self, body: str | int) -> np.ndarray:
         """(n, T, 3) body position."""
@@ -69,36 +76,38 @@ class Replay:
         return self.contacts[(min(g1, g2), max(g1, g2))]
 
 
-def _contact_pairs(task) -> list[tuple[int, int]]:
-    pairs = []
-    for c in task.contacts:
-        for pair in ((c.geom1, c.geom2), c.before):
-            if pair is not None:
-                key = (min(pair), max(pair))
-                if key not in pairs:
-                    pairs.append(key)
-    return pairs
+def _problem(task):
+    """The `Problem` of a Task (built), or the Problem itself."""
+    return task if isinstance(task, Problem) else task.build()
 
 
-@functools.lru_cache(maxsize=8)
-def _kinematics_fn(task):
+# Compiled per declaration and precision: kinematics and distances do not depend on
+# the gradient model's solver options, so a calibrated problem reuses them.
+_KINEMATICS: dict[tuple[str, Any], Any] = {}
+_STATE_COSTS: dict[tuple[str, Any], Any] = {}
+
+
+def _kinematics_fn(problem):
     """jit(vmap): qpos (B, nq) -> body, site positions and pair distances."""
-    scene = task.scene
-    d0 = mjx.make_data(scene.mx)
-    pairs = _contact_pairs(task)
-    fns = [task.distance_fn(*p) for p in pairs]
+    key = (problem.fingerprint, problem.scene.dtype)
+    if key not in _KINEMATICS:
+        scene = problem.scene
+        d0 = mjx.make_data(scene.mx)
+        pairs = problem.contact_pairs()
+        fns = [problem.distance_fn(*p) for p in pairs]
 
-    def one(qpos):
-        d = mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
-        dist = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else jnp.zeros(0)
-        return d.xpos, d.site_xpos, dist
+        def one(qpos):
+            d = mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
+            dist = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else jnp.zeros(0)
+            return d.xpos, d.site_xpos, dist
 
-    return jax.jit(jax.vmap(one)), pairs
+        _KINEMATICS[key] = (jax.jit(jax.vmap(one)), pairs)
+    return _KINEMATICS[key]
 
 
-def _poses_and_contacts(task, qpos: np.ndarray, chunk: int = 65536):
+def _poses_and_contacts(problem, qpos: np.ndarray, chunk: int = 65536):
     n, T, nq = qpos.shape
-    fn, pairs = _kinematics_fn(task)
+    fn, pairs = _kinematics_fn(problem)
     flat = qpos.reshape(-1, nq)
     outs = []
     for start in range(0, len(flat), chunk):
@@ -106,7 +115,7 @@ def _poses_and_contacts(task, qpos: np.ndarray, chunk: int = 65536):
         pad = chunk - len(part) if len(flat) > chunk else 0
         if pad:  # one compiled shape for every chunk
             part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
-        out = jax.device_get(fn(jnp.asarray(part, task.scene.dtype)))
+        out = jax.device_get(fn(jnp.asarray(part, problem.scene.dtype)))
         outs.append([np.asarray(o[: len(part) - pad], np.float64) for o in out])
     xpos, site_xpos, dist = (np.concatenate(parts) for parts in zip(*outs, strict=True))
     xpos = xpos.reshape(n, T, -1, 3)
@@ -117,47 +126,51 @@ def _poses_and_contacts(task, qpos: np.ndarray, chunk: int = 65536):
 
 
 def simulate_c(task, theta: np.ndarray) -> Replay:
-    """Replays particles θ (n, d) in MuJoCo C with the scene's own solver settings.
+    """Replays particles θ (n, d) of a Task or Problem in MuJoCo C (the scene's own solver).
 
     Discrete actions are taken at Γ(θ): the plan as decoded, not its relaxation.
     """
+    problem = _problem(task)
     theta = np.asarray(theta, np.float64)
-    qpos0, qvel0, ctrl = task.inputs(task.unpack(theta), xp=np)
+    qpos0, qvel0, ctrl = problem.inputs(theta, xp=np)
     ctrl = np.asarray(ctrl, np.float64)
-    states = replay_c(task.scene, qpos0, qvel0, ctrl, fields=("qpos", "qvel"), solver="scene")
-    return Replay(task, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
+    states = replay_c(problem.scene, qpos0, qvel0, ctrl, fields=("qpos", "qvel"),
+                      solver="scene")
+    return Replay(problem, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
 
 
 def simulate_mjx(task, theta) -> Replay:
-    """Rolls particles θ (n, d) out in MJX (the planner's own, gradient-safe model)."""
-    params = task.unpack(jnp.asarray(theta, task.scene.dtype))
-    rollout = task.scene.rollout_fn(task.horizon, fields=("qpos",))
-    qpos = rollout(*task.inputs(params, hard=True))["qpos"]
-    return Replay(task, np.asarray(qpos), source="mjx")
+    """Rolls particles θ (n, d) out in MJX (the planner's own gradient model)."""
+    problem = _problem(task)
+    theta = jnp.asarray(theta, problem.scene.dtype)
+    rollout = problem.scene.rollout_fn(problem.horizon, fields=("qpos",))
+    qpos = rollout(*problem.inputs(theta, hard=True))["qpos"]
+    return Replay(problem, np.asarray(qpos), source="mjx")
 
 
-@functools.lru_cache(maxsize=8)
-def _state_cost_fn(task):
+def _state_cost_fn(problem):
     """jit: states (B, T, nq), (B, T, nv) and θ (B, d) -> the task's cost C (B,).
 
     The task's own costs on a trajectory it did not roll out itself (a MuJoCo
-    C replay): MJX kinematics give the poses, `Task.score` the terms.
+    C replay): MJX kinematics give the poses, `Problem.score` the terms.
     """
-    scene = task.scene
-    d0 = mjx.make_data(scene.mx)
-    fields = task.fields()
+    key = (problem.fingerprint, problem.scene.dtype)
+    if key not in _STATE_COSTS:
+        scene = problem.scene
+        d0 = mjx.make_data(scene.mx)
 
-    def poses(qpos):
-        d = mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
-        return {f: getattr(d, f) for f in fields if f not in ("qpos", "qvel")}
+        def poses(qpos):
+            d = mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
+            return {f: getattr(d, f) for f in FIELDS if f not in ("qpos", "qvel")}
 
-    def cost(qpos, qvel, theta):
-        traj = jax.vmap(jax.vmap(poses))(qpos)
-        traj.update(qpos=qpos, qvel=qvel)
-        _, values = task.score(traj, task.unpack(theta))
-        return task.cost_total(values)
+        def cost(qpos, qvel, theta):
+            traj = jax.vmap(jax.vmap(poses))(qpos)
+            traj.update(qpos=qpos, qvel=qvel)
+            _, values = problem.score(traj, problem.unpack(theta))
+            return problem.cost_total(values)
 
-    return jax.jit(cost)
+        _STATE_COSTS[key] = jax.jit(cost)
+    return _STATE_COSTS[key]
 
 
 def cost_c(task, replay: Replay, theta: np.ndarray, *, chunk: int = 32) -> np.ndarray:
@@ -165,15 +178,16 @@ def cost_c(task, replay: Replay, theta: np.ndarray, *, chunk: int = 32) -> np.nd
 
     Non-finite costs (a state that blew up) are +inf.
     """
-    fn = _state_cost_fn(task)
+    problem = _problem(task)
+    fn = _state_cost_fn(problem)
     n = len(theta)
     out = np.empty(n)
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         idx = np.arange(start, start + chunk).clip(max=n - 1)  # one compiled shape
-        value = fn(jnp.asarray(replay.qpos[idx], task.scene.dtype),
-                   jnp.asarray(replay.qvel[idx], task.scene.dtype),
-                   jnp.asarray(theta[idx], task.scene.dtype))
+        dtype = problem.scene.dtype
+        value = fn(jnp.asarray(replay.qpos[idx], dtype), jnp.asarray(replay.qvel[idx], dtype),
+                   jnp.asarray(theta[idx], dtype))
         out[start:stop] = np.asarray(value, np.float64)[: stop - start]
     return np.where(np.isfinite(out), out, np.inf)
 
@@ -195,12 +209,12 @@ class Repair:
     seconds: float
 
 
-def _box(task) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(low, high, movable, clip) per coordinate of θ; logits are not moved."""
-    low = np.concatenate([v.low for v in task.variables])
-    high = np.concatenate([v.high for v in task.variables])
-    movable = np.concatenate([np.full(v.size, v.kind != "logits") for v in task.variables])
-    clip = np.concatenate([np.full(v.size, v.kind == "box") for v in task.variables])
+def _box(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(low, high, movable, clip) per coordinate of θ; discrete logits are not moved."""
+    low, high = problem.low, problem.high
+    movable = np.concatenate([np.full(v.size, v.kind is not Kind.DISCRETE)
+                              for v in problem.variables])
+    clip = np.concatenate([np.full(v.size, v.kind is Kind.BOX) for v in problem.variables])
     return low, high, movable, clip
 
 
@@ -237,6 +251,7 @@ def repair(
       A `Repair`.
     """
     started = time.perf_counter()
+    task = _problem(task)
     theta = np.array(theta, np.float64, copy=True)
     m = len(theta)
     out = Repair(theta.copy(), np.zeros(m, bool), 0, 0.0)
@@ -277,61 +292,9 @@ def repair(
     return out
 
 
-@dataclasses.dataclass
-class Decoded:
-    """Task plans of n particles read off a replay.
-
-    Attributes:
-      ok: (n,) success predicate.
-      label: (n,) success label ("" where none).
-      bits: (n, n_symbols) int, the contact symbols.
-      actions: (n, n_phases) option names of the discrete variables.
-      plan: (n,) task-plan strings, e.g. "0110-top".
-      code: (n,) the symbol bits alone, e.g. "0110".
-    """
-
-    ok: np.ndarray
-    label: np.ndarray
-    bits: np.ndarray
-    actions: list[list[str]]
-    plan: np.ndarray
-    code: np.ndarray
-
-
 def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:
-    """Decodes task plans from a replay (symbols, actions, success label)."""
-    n, T = replay.qpos.shape[:2]
-    bits = np.zeros((n, len(task.contacts)), int)
-    for k, c in enumerate(task.contacts):
-        touch = replay.contact(c.geom1, c.geom2)
-        if c.before is not None:
-            first = replay.contact(*c.before)
-            t_c = np.where(first.any(axis=1), first.argmax(axis=1), T - 1)
-            touch = touch & (np.arange(T)[None] <= t_c[:, None])
-        bits[:, k] = touch.any(axis=1)
-    actions = [[] for _ in range(n)]
-    params = task.unpack(np.asarray(theta))
-    for v in task.variables:
-        if v.kind != "logits":
-            continue
-        m = len(v.options)
-        choice = np.asarray(params[v.name]).reshape(n, v.phases, m).argmax(axis=-1)
-        for i in range(n):
-            actions[i] += [v.options[j] for j in choice[i]]
-    if task.actions_fn is not None:
-        actions = [list(a) for a in task.actions_fn(replay, actions)]
-    if task.success_fn is not None:
-        ok, label = task.success_fn(replay)
-        ok = np.asarray(ok, bool)
-        label = np.asarray(label, dtype=object)
-    else:
-        ok, label = np.ones(n, bool), np.full(n, "", dtype=object)
-    code = np.array(["".join(map(str, b)) for b in bits], dtype=object)
-    plan = []
-    for i in range(n):
-        parts = [p for p in (code[i], ",".join(actions[i]), label[i]) if p]
-        plan.append("-".join(parts) or "-")
-    return Decoded(ok, label, bits, actions, np.array(plan, dtype=object), code)
+    """Task plans of a Task's or Problem's particles θ read off a replay (`Problem.decode`)."""
+    return _problem(task).decode(replay, theta)
 
 
 def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: Decoded,
@@ -427,7 +390,9 @@ def check_writable(out: str | os.PathLike) -> Path:
         os.close(fd)
         os.unlink(tmp)
     except OSError as e:
-        raise MjstampError(f"--out {str(path)!r} is not writable: {e.strerror or e}") from None
+        raise MjstampError(
+            f"results directory {str(path)!r} is not writable: {e.strerror or e}"
+        ) from None
     return path
 
 
@@ -460,17 +425,28 @@ def save(
 
 
 def load(out: str | os.PathLike) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
-    """Loads what `save` wrote: (plans.json contents, {npz name: arrays})."""
+    """Loads what `save` wrote: (plans.json contents, {npz name: arrays}).
+
+    The one check of a results directory's schema (playback and `mjstamp.load`
+    go through here).
+
+    Raises:
+      MjstampError: no plans.json, not JSON, another schema version.
+    """
     path = Path(out)
     plans = path / "plans.json"
     if not plans.is_file():
         raise MjstampError(f"{str(path)!r} holds no plans.json (not a results directory)")
-    summary = json.loads(plans.read_text())
-    version = summary.get("schema_version")
+    try:
+        summary = json.loads(plans.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise MjstampError(f"{str(plans)!r} is not valid JSON: {e}") from None
+    version = summary.get("schema_version") if isinstance(summary, dict) else None
     if version != SCHEMA_VERSION:
+        task = summary.get("task", "TASK") if isinstance(summary, dict) else "TASK"
         raise MjstampError(
             f"{str(plans)!r} has schema_version {version!r}; this mjstamp reads "
-            f"{SCHEMA_VERSION}"
+            f"{SCHEMA_VERSION} (re-run `mjstamp solve {task} --out {path}`)"
         )
     arrays = {}
     for npz in sorted(path.glob("*.npz")):

@@ -27,6 +27,7 @@ import jax
 import numpy as np
 
 from mjstamp import plans as plans_mod
+from mjstamp.tasks import Problem
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,13 +64,13 @@ def _group_keys(decoded: plans_mod.Decoded) -> list[str]:
 
 
 def seed_particles(
-    task, key: jax.Array, n: int, *, screen: int = 16, chunk: int = 256
+    problem, key: jax.Array, n: int, *, screen: int = 16, chunk: int = 256
 ) -> tuple[np.ndarray, Screen]:
     """Initial particles (n, d) chosen from `screen · n` candidates screened in MuJoCo C.
 
     Args:
-      task: the `Task`.
-      key: PRNG key of the candidates (`task.initial_particles`).
+      problem: the `Problem` (or a `Task`, built here).
+      key: PRNG key of the candidates (`Problem.init`).
       n: particles to choose.
       screen: candidates per particle (>= 1; 1 returns the prior draw).
       chunk: candidates per batched C replay (bounds memory).
@@ -78,17 +79,18 @@ def seed_particles(
       (particles (n, d) float64, `Screen`).
     """
     started = time.perf_counter()
+    problem = problem if isinstance(problem, Problem) else problem.build()
     total = n * max(1, int(screen))
-    candidates = np.asarray(task.initial_particles(key, total), np.float64)
+    candidates = np.asarray(problem.init(key, total), np.float64)
     if screen <= 1:
         return candidates, Screen(total, 0, {}, 0, time.perf_counter() - started)
     groups: dict[str, list[tuple[float, int]]] = defaultdict(list)
     successes: dict[str, int] = defaultdict(int)
     for start in range(0, total, chunk):
         part = candidates[start : start + chunk]
-        replay = plans_mod.simulate_c(task, part)
-        decoded = plans_mod.decode(task, replay, part)
-        cost = plans_mod.cost_c(task, replay, part)
+        replay = plans_mod.simulate_c(problem, part)
+        decoded = problem.decode(replay, part)
+        cost = plans_mod.cost_c(problem, replay, part)
         for j, k in enumerate(_group_keys(decoded)):
             groups[k].append((float(cost[j]), start + j))
             if decoded.ok[j]:

@@ -1,22 +1,25 @@
-"""Solve a task: STAMP on its log posterior, then decode, verify and group the plans.
+"""Solve a task: STAMP on its log posterior, then decode, verify, repair and group the plans.
+
+`solve(task, config)` builds the task's `Problem` once and runs, in order:
+seeding (a forward-only screen in MuJoCo C, `mjstamp.seeding`), calibration of
+the gradient model against the scene's own physics (`scenes.fidelity`), STAMP
+(`svgd.run_stamp`), and the evaluation of the final particles.
 
 Which plans are *returned*: the particles whose MJX rollout (the planner's own
 model) satisfies the task's success predicate; each is then replayed in MuJoCo
 C with the scene's own solver settings, and counts as *verified* when the
 predicate holds there too. The task plan of a verified plan is read off its C
-replay.
+replay. A returned plan that fails in C is refined there (`plans.repair`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import difflib
-import math
-import numbers
 import sys
 import time
 from collections import Counter
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -26,146 +29,23 @@ import optax
 
 from mjstamp import plans as plans_mod
 from mjstamp import seeding, svgd
-from mjstamp.errors import MjstampError, valid_list
+from mjstamp.config import SolveConfig
+from mjstamp.errors import MjstampError
 from mjstamp.scenes import fidelity
+from mjstamp.tasks import Problem, Task
 from mjstamp.tracecache import cached_jit
 
-_ITERS_OF_STAMP = ("svgd_max_iters", "sgd_max_iters", "min_iters", "window", "rtol", "jacobian")
+__all__ = ["SolveConfig", "SolveResult", "as_problem", "calibrate", "problem_jit", "solve"]
 
 
-@dataclasses.dataclass(frozen=True)
-class SolveConfig:
-    """Settings of `solve`, validated on construction (unknown keys are an error).
-
-    Defaults are meant to work on a task nobody tuned: step sizes follow each
-    variable's box, iteration caps keep a solve to minutes, and the gradient
-    model is calibrated against the scene's own physics before STAMP starts.
-
-    Attributes:
-      particles: n >= 2 particles (candidate plans).
-      svgd_max_iters: cap on SVGD iterations (Algorithm 1 line 3-7).
-      sgd_max_iters: cap on SGD iterations (line 8-10).
-      min_iters: iterations each phase runs before the convergence test may end it.
-      window: W of the convergence test (`svgd.has_converged`).
-      rtol: its relative tolerance on the mean log posterior.
-      motion_tol: its bound on the mean displacement per iteration, in units
-        of θ; None: 1e-4 of the mean box width.
-      svgd_learning_rate: Adam step of the SVGD phase in units of θ (one
-        number for every coordinate); None: `svgd_step` of each coordinate's
-        box width.
-      sgd_learning_rate: likewise for the SGD phase; None: `sgd_step`.
-      svgd_step: SVGD step as a fraction of each coordinate's box width (when
-        `svgd_learning_rate` is None): 0.01, so 50 iterations can cross half
-        the box.
-      sgd_step: SGD step as a fraction of the box width: 0.003, finer, to
-        settle into narrow modes.
-      jacobian: 'auto', 'fwd' or 'rev' (see `svgd.StampConfig`).
-      calibrate: pick the gradient solver's iterations so the MJX rollouts
-        follow the scene's own physics (`scenes.fidelity.calibrate`).
-      fidelity_tolerance: divergence allowed to 95% of the particles, metres;
-        None: 1e-3 of the scene's size.
-      max_solver_iterations: calibration budget (solver iterations); None:
-        the MJCF's own `opt.iterations`.
-      allow_unfaithful: solve even when no setting within budget is faithful
-        (the result is then marked so).
-      repair: refine returned plans whose MuJoCo C replay fails, in C.
-      repair_rounds: rounds of the local search per plan.
-      repair_samples: candidates per plan and round.
-      screen: seed the particles from `screen · particles` candidates of the
-        prior replayed in MuJoCo C, spread over the task plans they reach
-        (`mjstamp.seeding`); 1 draws them from the prior directly.
-      keep_visited: a particle whose final state is not a verified plan, or
-        duplicates another's task plan, returns the plan it held at the end
-        of SVGD or at the start if that one was (no plan found is lost).
-    """
-
-    particles: int = 128
-    svgd_max_iters: int = 50
-    sgd_max_iters: int = 100
-    min_iters: int = 20
-    window: int = 25
-    rtol: float = 1e-3
-    motion_tol: float | None = None
-    svgd_learning_rate: float | None = None
-    sgd_learning_rate: float | None = None
-    svgd_step: float = 0.01
-    sgd_step: float = 0.003
-    jacobian: str = "auto"
-    calibrate: bool = True
-    fidelity_tolerance: float | None = None
-    max_solver_iterations: int | None = None
-    allow_unfaithful: bool = False
-    repair: bool = True
-    repair_rounds: int = 8
-    repair_samples: int = 32
-    screen: int = 16
-    keep_visited: bool = True
-
-    def __post_init__(self):
-        ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
-                "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
-                "repair_samples": 1, "screen": 1}
-        for name, low in ints.items():
-            value = getattr(self, name)
-            if value is None and name == "max_solver_iterations":
-                continue
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-                raise MjstampError(f"solve setting {name}={value!r} must be an integer >= {low}")
-        positive = ("svgd_step", "sgd_step", "rtol")
-        optional = ("motion_tol", "svgd_learning_rate", "sgd_learning_rate", "fidelity_tolerance")
-        for name in positive + optional:
-            value = getattr(self, name)
-            if value is None and name in optional:
-                continue
-            ok = not isinstance(value, bool) and isinstance(value, numbers.Real)
-            if not (ok and math.isfinite(value) and value > 0) and not (
-                name in ("rtol", "motion_tol") and ok and value == 0
-            ):
-                what = "a number > 0" + (" or None" if name in optional else "")
-                raise MjstampError(f"solve setting {name}={value!r} must be {what}")
-        for name in ("calibrate", "allow_unfaithful", "repair", "keep_visited"):
-            if not isinstance(getattr(self, name), bool):
-                raise MjstampError(
-                    f"solve setting {name}={getattr(self, name)!r} must be True or False"
-                )
-        if self.jacobian not in ("auto", "fwd", "rev"):
-            raise MjstampError(
-                f"solve setting jacobian={self.jacobian!r} is not valid; valid: auto, fwd, rev"
-            )
-
-    @classmethod
-    def fields(cls) -> list[str]:
-        """Names of the settings."""
-        return [f.name for f in dataclasses.fields(cls)]
-
-    @classmethod
-    def from_dict(cls, config: Mapping[str, Any] | None, *, ignore=()) -> SolveConfig:
-        """Builds a config from a dict; keys in `ignore` (a task's own settings) are skipped.
-
-        Raises:
-          MjstampError: a key that is neither a solve setting nor in `ignore`,
-            naming it, the closest valid key and every valid one.
-        """
-        config = dict(config or {})
-        valid = cls.fields()
-        for key in config:
-            if key in valid or key in ignore:
-                continue
-            close = difflib.get_close_matches(str(key), valid + list(ignore), n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise MjstampError(
-                f"unknown solve setting {key!r}{hint}; valid: {valid_list(valid + sorted(ignore))}"
-            )
-        return cls(**{k: v for k, v in config.items() if k in valid})
-
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-ready view."""
-        return dataclasses.asdict(self)
+def as_problem(task: Task | Problem) -> Problem:
+    """The `Problem` of a task (`task.build()`), or the problem itself."""
+    return task if isinstance(task, Problem) else task.build()
 
 
-def _box_widths(task) -> np.ndarray:
+def _box_widths(problem: Problem) -> np.ndarray:
     """(d,) width of each coordinate's box (angles: their range)."""
-    return np.concatenate([v.high - v.low for v in task.variables]).astype(np.float64)
+    return (problem.high - problem.low).astype(np.float64)
 
 
 def _scale_columns(widths: np.ndarray) -> optax.GradientTransformation:
@@ -190,19 +70,39 @@ def _optimizer(rate: float | None, step: float, widths: np.ndarray):
 
 
 @dataclasses.dataclass
+class Outcome:
+    """Particles θ (n, d) evaluated once: MJX cost and decode, MuJoCo C replay and decode."""
+
+    cost: np.ndarray
+    mjx_replay: plans_mod.Replay
+    predicted: plans_mod.Decoded
+    replay: plans_mod.Replay
+    verified: plans_mod.Decoded
+
+    @property
+    def good(self) -> np.ndarray:
+        """(n,) returned (success in MJX, finite cost) and verified (success in C)."""
+        return self.predicted.ok & np.isfinite(self.cost) & self.verified.ok
+
+
+@dataclasses.dataclass
 class SolveResult:
-    """Everything a solve produced (see `summary` for the JSON view).
+    """Everything a solve produced (see `summary` for the JSON view, `save` for files).
 
     Attributes:
-      task: the task as solved (on its calibrated gradient model).
-      config: the solve settings, the task's own settings and the seed.
+      problem: the problem as solved (on its calibrated gradient model).
+      config: {"seed", "task": the task's own settings, "solve": `SolveConfig`}.
       theta: (n, d) final particles (repaired ones replaced by their repair).
+      returned: (n,) plans whose MJX rollout succeeds.
       repaired: (n,) returned plans that failed in MuJoCo C and were repaired.
+      source: (n,) where each particle's plan comes from: "final", or "svgd" /
+        "initial" when an earlier state was kept (`SolveConfig.keep_visited`).
       fidelity: the calibration (`Calibration.as_dict`) plus the divergence of
-        the MJX rollouts of the final particles from their C replays.
+        MJX rollouts from their C replays, initial and final particles.
+      screen: the seeding screen (`seeding.Screen.as_dict`) or None.
     """
 
-    task: Any
+    problem: Problem
     config: dict
     theta: np.ndarray
     svgd_theta: np.ndarray
@@ -218,8 +118,13 @@ class SolveResult:
     rows: list[dict]
     timings: dict[str, float]
     fidelity: dict
-    screen: dict | None = None
-    source: np.ndarray | None = None
+    screen: dict | None
+    source: np.ndarray
+
+    @property
+    def task(self) -> Problem:
+        """The problem (the name `figures` and notebooks read)."""
+        return self.problem
 
     @property
     def verified_fraction(self) -> float:
@@ -237,9 +142,9 @@ class SolveResult:
         found = sorted({p for p, good in zip(self.verified.plan, ok, strict=True) if good})
         codes = sorted({c for c, good in zip(self.verified.code, ok, strict=True) if good})
         out = {
-            "task": self.task.name,
+            "task": self.problem.name,
             "particles": int(self.theta.shape[0]),
-            "seed": int(self.config.get("seed", 0)),
+            "seed": int(self.config["seed"]),
             "wall_time_s": self.timings["total_s"],
             "timings": self.timings,
             "returned_plans": int(self.returned.sum()),
@@ -254,28 +159,13 @@ class SolveResult:
             "screen": self.screen,
             "kept_from_earlier": {
                 name: int(((self.source == name) & ok).sum()) for name in ("svgd", "initial")
-            } if self.source is not None else {},
+            },
             "task_plans": [
                 {k: r[k] for k in ("task_plan", "code", "plans", "verified", "repaired",
                                    "verified_share", "best_cost")}
                 for r in self.rows
             ],
-            "plans": [
-                {
-                    "particle": int(i),
-                    "task_plan": self.verified.plan[i],
-                    "predicted_task_plan": self.predicted.plan[i],
-                    "verified": bool(self.verified.ok[i]),
-                    "repaired": bool(self.repaired[i]),
-                    "source": "final" if self.source is None else str(self.source[i]),
-                    "cost": float(self.cost[i]),
-                    "motion_plan": {
-                        name: np.asarray(val[i]).tolist()
-                        for name, val in self.task.unpack(self.theta).items()
-                    },
-                }
-                for i in np.flatnonzero(self.returned)
-            ],
+            "plans": self._plans(),
             "iteration_seconds": _iteration_seconds(self.diagnostics),
             "stamp": {
                 "svgd_iters": self.stamp.svgd_iters,
@@ -284,12 +174,28 @@ class SolveResult:
                 "sgd_converged": self.stamp.sgd_converged,
             },
             "config": self.config,
-            "declaration": self.task.describe(),
+            "declaration": self.problem.describe(),
         }
         if coverage is not None:
             out["coverage"] = coverage["coverage"]
             out["coverage_detail"] = coverage
         return out
+
+    def _plans(self) -> list[dict]:
+        params = self.problem.unpack(self.theta)
+        return [
+            {
+                "particle": int(i),
+                "task_plan": self.verified.plan[i],
+                "predicted_task_plan": self.predicted.plan[i],
+                "verified": bool(self.verified.ok[i]),
+                "repaired": bool(self.repaired[i]),
+                "source": str(self.source[i]),
+                "cost": float(self.cost[i]),
+                "motion_plan": {name: np.asarray(val[i]).tolist() for name, val in params.items()},
+            }
+            for i in np.flatnonzero(self.returned)
+        ]
 
     def arrays(self) -> dict[str, dict[str, np.ndarray]]:
         """Arrays for the result files: particles.npz and trajectories.npz."""
@@ -298,10 +204,7 @@ class SolveResult:
             "theta": self.theta, "svgd_theta": self.svgd_theta,
             "initial_theta": self.initial_theta, "cost": self.cost,
             "returned": self.returned, "verified": self.verified.ok,
-            "repaired": self.repaired,
-            "source": np.asarray(
-                self.source if self.source is not None else ["final"] * len(self.theta), dtype=str
-            ),
+            "repaired": self.repaired, "source": np.asarray(self.source, dtype=str),
             # Task plan of every particle's C replay (returned or not), for figures.
             "task_plan": np.asarray(self.verified.plan, dtype=str),
             "predicted_task_plan": np.asarray(self.predicted.plan, dtype=str),
@@ -309,7 +212,7 @@ class SolveResult:
             "phase": d.phase, "displacement": d.displacement, "step_seconds": d.step_seconds,
         }
         idx = np.flatnonzero(self.returned)
-        qpos0, qvel0, _ = self.task.inputs(self.task.unpack(self.theta[idx]), xp=np)
+        qpos0, qvel0, _ = self.problem.inputs(self.theta[idx], xp=np)
         trajectories = {
             "particle": idx,
             "qpos0": np.asarray(qpos0, np.float64),
@@ -318,9 +221,29 @@ class SolveResult:
             "qvel": self.replay.qvel[idx],
             "ctrl": self.replay.ctrl[idx],
             "xpos": self.replay.xpos[idx],
-            "timestep": np.float64(self.task.scene.m.opt.timestep),
+            "timestep": np.float64(self.problem.scene.m.opt.timestep),
         }
         return {"particles": particles, "trajectories": trajectories}
+
+    def save(self, out: str | Path, *, figures: bool = True, coverage: dict | None = None,
+             progress: bool | None = None) -> list[Path]:
+        """Writes the results directory: plans.json, .npz files, scene.mjb[, figures].
+
+        Every file is written atomically, plans.json last (a directory with one
+        is complete). `mjstamp.load(out)` reads it back; `mjstamp view` plays it.
+
+        Returns:
+          The paths written.
+        """
+        from mjstamp import figures as figures_mod  # noqa: PLC0415 - matplotlib only here
+
+        out = plans_mod.check_writable(out)
+        written = plans_mod.save(out, self.summary(coverage), self.arrays(),
+                                 model=self.problem.scene.m)
+        if figures:
+            written += figures_mod.save_figures(self, out, progress=progress,
+                                                jit=problem_jit(self.problem))
+        return written
 
 
 def _iteration_seconds(d: svgd.StampDiagnostics) -> dict[str, float | None]:
@@ -333,28 +256,19 @@ def _iteration_seconds(d: svgd.StampDiagnostics) -> dict[str, float | None]:
     return out
 
 
-def task_jit(task):
-    """`jit(fn, name, *example) -> compiled fn` for this task: `_jit` bound to it.
+def problem_jit(problem: Problem):
+    """`jit(fn, name, *example) -> compiled fn` through the trace cache, keyed by `problem`.
 
-    For `figures.save_figures(result, out, jit=task_jit(result.task))`, so a
-    registered task's figures skip tracing on a re-run as its solve does.
+    The key is the problem's fingerprint (its whole declaration, the code of
+    its costs included, and the scene) with the gradient model's options, so a
+    re-run of a script or notebook skips tracing, and any change traces anew.
     """
-    return lambda fn, name, *example: _jit(fn, task, name, *example)
+    grad = dataclasses.asdict(problem.scene.grad_options)
 
+    def jit(fn, name: str, *example):
+        return cached_jit(fn, f"problem={problem.fingerprint} grad={grad} {name}", *example)
 
-def _jit(fn, task, name: str, *example):
-    """jax.jit, through the trace cache when the task has a `cache_key`.
-
-    Only registered tasks have one (their code is mjstamp's, whose source the
-    trace cache hashes, and their config is the key); a task declared in a
-    user's script may change without its key changing, so it is traced anew.
-    The key also holds the gradient model's options, which calibration sets.
-    """
-    key = getattr(task, "cache_key", None)
-    if key is None:
-        return jax.jit(fn)
-    grad = dataclasses.asdict(task.scene.grad_options)
-    return cached_jit(fn, f"{key} grad={grad} {name}", *example)
+    return jit
 
 
 def _say(progress: bool | None):
@@ -365,16 +279,16 @@ def _say(progress: bool | None):
     )
 
 
-def calibrate(task, theta: np.ndarray, cfg: SolveConfig, *, say=None):
-    """Calibrates the task's gradient model on particles θ; returns (task, Calibration).
+def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, say=None):
+    """Calibrates the gradient model on particles θ; returns (problem, Calibration).
 
     Raises:
       MjstampError: no setting within budget is faithful and
         `cfg.allow_unfaithful` is False (one line with the divergence).
     """
-    qpos0, qvel0, ctrl = task.inputs(task.unpack(np.asarray(theta, np.float64)), xp=np)
+    qpos0, qvel0, ctrl = problem.inputs(np.asarray(theta, np.float64), xp=np)
     calibration = fidelity.calibrate(
-        task.scene, qpos0, qvel0, np.asarray(ctrl, np.float64),
+        problem.scene, qpos0, qvel0, np.asarray(ctrl, np.float64),
         tolerance=cfg.fidelity_tolerance, max_iterations=cfg.max_solver_iterations,
     )
     if not calibration.faithful and not cfg.allow_unfaithful:
@@ -386,22 +300,22 @@ def calibrate(task, theta: np.ndarray, cfg: SolveConfig, *, say=None):
     if say is not None:
         say(calibration.message())
     after = calibration.after
-    scene = task.scene.with_grad_options(
+    scene = problem.scene.with_grad_options(
         gradient=after.gradient, iterations=after.iterations, ls_iterations=after.ls_iterations
     )
-    return task.on_scene(scene), calibration
+    return problem.on_scene(scene), calibration
 
 
-def _mjx_divergence(task, theta: np.ndarray, qpos_mjx: np.ndarray) -> np.ndarray:
+def mjx_divergence(problem: Problem, theta: np.ndarray, qpos_mjx: np.ndarray) -> np.ndarray:
     """(n,) divergence of MJX rollouts (n, T, nq) of θ from their C replays (own solver)."""
-    qpos_c = plans_mod.simulate_c(task, theta).qpos
-    m = task.scene.m
+    qpos_c = plans_mod.simulate_c(problem, theta).qpos
+    m = problem.scene.m
     return fidelity.divergence(fidelity.body_positions(m, qpos_mjx),
                                fidelity.body_positions(m, qpos_c))
 
 
-def _stamp_config(cfg: SolveConfig, task, seed: int) -> svgd.StampConfig:
-    widths = _box_widths(task)
+def _stamp_config(cfg: SolveConfig, problem: Problem, seed: int) -> svgd.StampConfig:
+    widths = _box_widths(problem)
     motion = cfg.motion_tol if cfg.motion_tol is not None else 1e-4 * float(widths.mean())
     return svgd.StampConfig(
         svgd_learning_rate=cfg.svgd_learning_rate or cfg.svgd_step,
@@ -412,24 +326,93 @@ def _stamp_config(cfg: SolveConfig, task, seed: int) -> svgd.StampConfig:
     )
 
 
-def solve(
-    task, config: Mapping[str, Any] | SolveConfig | None = None, *, seed: int = 0,
-    progress: bool | None = None,
-) -> SolveResult:
-    """Runs STAMP on `task`, then decodes, verifies, repairs and groups the plans.
+class _Evaluator:
+    """The final evaluation of particles, compiled once per solve and reused."""
 
-    Steps: draw the initial particles; calibrate the gradient model on them
-    (the fewest solver iterations whose rollouts follow the scene's own
-    physics); STAMP; decode every particle from its MJX rollout (returned:
-    those that succeed there) and from its MuJoCo C replay with the scene's
-    own solver (verified: those that succeed there too); repair returned plans
-    that fail in C by a local search in C; group by task plan.
+    def __init__(self, problem: Problem, example: np.ndarray):
+        self.problem = problem
+
+        def final(th):
+            """Cost and MJX trajectory of particles at Γ(θ), from one rollout."""
+            r, values = problem.evaluate(th, hard=True)
+            return problem.cost_total(values), r.traj["qpos"]
+
+        self.fn = problem_jit(problem)(final, "final", jnp.asarray(example, problem.scene.dtype))
+
+    def mjx(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(cost (n,), qpos (n, T, nq)) of θ in MJX."""
+        cost, qpos = jax.device_get(self.fn(jnp.asarray(theta, self.problem.scene.dtype)))
+        return np.asarray(cost, np.float64), np.asarray(qpos)
+
+    def __call__(self, theta: np.ndarray) -> Outcome:
+        cost, qpos = self.mjx(theta)
+        mjx_replay = plans_mod.Replay(self.problem, qpos, source="mjx")
+        replay = plans_mod.simulate_c(self.problem, theta)
+        return Outcome(cost, mjx_replay, self.problem.decode(mjx_replay, theta), replay,
+                       self.problem.decode(replay, theta))
+
+
+def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
+    """(θ0 (n, d), screen report or None): seeded from a C screen, or drawn from the prior."""
+    key = jax.random.key(seed)
+    if cfg.screen <= 1:
+        return problem.init(key, cfg.particles), None
+    say(f"screening {cfg.screen * cfg.particles} candidates in MuJoCo C")
+    theta0, screen = seeding.seed_particles(problem, key, cfg.particles, screen=cfg.screen)
+    return jnp.asarray(theta0, problem.scene.dtype), screen
+
+
+def _check_mjx(problem: Problem, evaluate: _Evaluator, theta0: np.ndarray, calibration,
+               cfg: SolveConfig, say) -> dict:
+    """MJX itself, not its C twin, on the calibration's particles (before STAMP starts)."""
+    say("MJX rollouts of the initial particles against MuJoCo C")
+    _, qpos = evaluate.mjx(theta0)
+    div = mjx_divergence(problem, theta0, qpos)
+    p95 = float(np.percentile(div, 95))
+    if p95 > calibration.tolerance_m and not cfg.allow_unfaithful:
+        raise MjstampError(
+            f"scene {problem.scene.name!r}: MJX rollouts diverge from MuJoCo C with the "
+            f"scene's own solver by p95 {p95:.2g} m > tolerance "
+            f"{calibration.tolerance_m:.2g} m over {problem.horizon} steps although its C "
+            f"twin agrees ({calibration.after.p95_m:.2g} m): MJX collides or integrates "
+            "something differently; set allow_unfaithful=True to solve anyway"
+        )
+    return {"mjx_initial_divergence_median_m": float(np.median(div)),
+            "mjx_initial_divergence_p95_m": p95}
+
+
+def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress):
+    widths = _box_widths(problem)
+    discrete = {}
+    if problem.has_actions:
+        # Discrete SVGD (eq. 4): the surrogate ρ relaxes actions with Γ̃, the target
+        # p(Γ(θ)) and the SGD refinement take them at Γ. Γ has no gradient, so SGD
+        # leaves the logits alone: App. E fixes them during SGD the same way.
+        discrete = {"log_target_fn": lambda th: problem.log_target(th)[0],
+                    "sgd_logdensity_fn": problem.sgd_logdensity}
+    jit = problem_jit(problem)
+    result = svgd.run_stamp(
+        problem.logdensity, theta0, problem.kernel, _stamp_config(cfg, problem, seed),
+        svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),
+        sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
+        progress=progress,
+        jit=lambda step, state, key, phase: jit(step, f"stamp-{phase} {cfg}", state, key),
+        **discrete,
+    )
+    jax.block_until_ready(result.particles)
+    return result
+
+
+def solve(
+    task: Task | Problem, config: Mapping[str, Any] | SolveConfig | None = None, *,
+    seed: int = 0, progress: bool | None = None,
+) -> SolveResult:
+    """Runs STAMP on a task, then decodes, verifies, repairs and groups the plans.
 
     Args:
-      task: a `Task`.
-      config: solve settings (`SolveConfig` or a dict of its fields; a
-        registered task's own settings, `task.settings`, may be in it too and
-        are recorded); None for the defaults.
+      task: a `Task` (built here, `task.build()`) or its `Problem`.
+      config: solve settings (`SolveConfig` or a dict of its fields); None for
+        the defaults.
       seed: makes the run reproducible.
       progress: True: tqdm bar and status lines on stderr; None: the bar on a
         terminal, status lines in any case; False: nothing.
@@ -441,139 +424,92 @@ def solve(
       MjstampError: an unknown or invalid setting, a declaration that is not
         complete, or a scene no setting within budget makes faithful.
     """
-    task.check()
-    settings = dict(getattr(task, "settings", {}) or {})
-    cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(
-        config, ignore=settings
-    )
-    say = _say(progress)
-    t_start = time.perf_counter()
-    n = cfg.particles
-    screen = None
-    if cfg.screen > 1:
-        say(f"screening {cfg.screen * n} candidates in MuJoCo C")
-        theta0, screen = seeding.seed_particles(task, jax.random.key(seed), n, screen=cfg.screen)
-        theta0 = jnp.asarray(theta0, task.scene.dtype)
-    else:
-        theta0 = task.initial_particles(jax.random.key(seed), n)
-    t_screen = time.perf_counter()
-    calibration = None
+    problem = as_problem(task)
+    cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
+    say, clock = _say(progress), {"start": time.perf_counter()}
+    theta0, screen = _initial_particles(problem, cfg, seed, say)
+    theta0_np = np.asarray(theta0, np.float64)
+    clock["screen"] = time.perf_counter()
+    calibration, report = None, {"calibrated": False}
     if cfg.calibrate:
-        task, calibration = calibrate(task, np.asarray(theta0), cfg, say=say)
-
-    def final(th):
-        """Cost and MJX trajectory of particles at Γ(θ), from one rollout."""
-        r, values = task.evaluate(th, hard=True)
-        return task.cost_total(values), r.traj["qpos"]
-
-    final = _jit(final, task, "final", jnp.asarray(theta0, task.scene.dtype))
+        problem, calibration = calibrate(problem, theta0_np, cfg, say=say)
+        report = calibration.as_dict()
+    evaluate = _Evaluator(problem, theta0_np)
     if calibration is not None:
-        # MJX itself, not its C twin, on the particles calibrated on: the same
-        # compiled evaluation the decode uses at the end.
-        say("MJX rollouts of the initial particles against MuJoCo C")
-        _, qpos = jax.device_get(final(jnp.asarray(theta0, task.scene.dtype)))
-        div = _mjx_divergence(task, np.asarray(theta0, np.float64), np.asarray(qpos))
-        mjx_p95 = float(np.percentile(div, 95))
-        if mjx_p95 > calibration.tolerance_m and not cfg.allow_unfaithful:
-            raise MjstampError(
-                f"scene {task.scene.name!r}: MJX rollouts diverge from MuJoCo C with the "
-                f"scene's own solver by p95 {mjx_p95:.2g} m > tolerance "
-                f"{calibration.tolerance_m:.2g} m over {task.horizon} steps although its C "
-                f"twin agrees ({calibration.after.p95_m:.2g} m): MJX collides or integrates "
-                "something differently; set allow_unfaithful=True to solve anyway"
-            )
-        initial_mjx = {"mjx_initial_divergence_median_m": float(np.median(div)),
-                       "mjx_initial_divergence_p95_m": mjx_p95}
-    t_calibrate = time.perf_counter()
-    widths = _box_widths(task)
-    discrete = {}
-    if task.has_actions:
-        # Discrete SVGD (eq. 4): the surrogate ρ relaxes actions with Γ̃, the target
-        # p(Γ(θ)) and the SGD refinement take them at Γ. Γ has no gradient, so SGD
-        # leaves the logits alone: App. E fixes them during SGD the same way.
-        discrete = {
-            "log_target_fn": lambda th: task.log_posterior(th, hard=True)[0],
-            "sgd_logdensity_fn": task.logdensity(hard=True),
-        }
-    result = svgd.run_stamp(
-        task.logdensity(), theta0, task.kernel(), _stamp_config(cfg, task, seed),
-        svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),
-        sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
-        progress=progress,
-        jit=lambda step, state, key, phase: _jit(step, task, f"stamp-{phase} {cfg}", state, key),
-        **discrete,
-    )
-    jax.block_until_ready(result.particles)
-    t_stamp = time.perf_counter()
-
-    theta = np.asarray(result.particles, np.float64)
-
-    def outcome(theta):
-        cost, qpos = jax.device_get(final(jnp.asarray(theta, task.scene.dtype)))
-        mjx_replay = plans_mod.Replay(task, np.asarray(qpos), source="mjx")
-        replay = plans_mod.simulate_c(task, theta)
-        return (np.asarray(cost, np.float64), mjx_replay, plans_mod.decode(task, mjx_replay, theta),
-                replay, plans_mod.decode(task, replay, theta))
-
+        report.update(_check_mjx(problem, evaluate, theta0_np, calibration, cfg, say))
+    clock["calibrate"] = time.perf_counter()
+    stamp = _run_stamp(problem, cfg, theta0, seed, progress)
+    clock["stamp"] = time.perf_counter()
     say("decoding and verifying in MuJoCo C")
-    cost, mjx_replay, predicted, replay, verified = outcome(theta)
-    source = np.full(n, "final", dtype=object)
+    theta = np.asarray(stamp.particles, np.float64)
+    outcome = evaluate(theta)
+    source = np.full(len(theta), "final", dtype=object)
     if cfg.keep_visited:
-        snapshots = {"svgd": np.asarray(result.svgd_particles, np.float64),
-                     "initial": np.asarray(theta0, np.float64)}
-        theta, source = _keep_visited(theta, (cost, predicted, verified), snapshots, outcome)
+        snapshots = {"svgd": np.asarray(stamp.svgd_particles, np.float64), "initial": theta0_np}
+        theta, source = _keep_visited(theta, outcome, snapshots, evaluate)
         if (source != "final").any():
-            cost, mjx_replay, predicted, replay, verified = outcome(theta)
-    returned = predicted.ok & np.isfinite(cost)
-    t_verify = time.perf_counter()
-    repaired = np.zeros(n, bool)
-    failed = np.flatnonzero(returned & ~verified.ok)
-    if cfg.repair and len(failed):
-        say(f"repairing {len(failed)} returned plans that fail in MuJoCo C")
-        fix = plans_mod.repair(task, theta[failed], predicted.plan[failed],
-                               rounds=cfg.repair_rounds, samples=cfg.repair_samples, seed=seed)
-        if fix.repaired.any():
-            theta[failed[fix.repaired]] = fix.theta[fix.repaired]
-            repaired[failed[fix.repaired]] = True
-            cost, mjx_replay, predicted, replay, verified = outcome(theta)
-    t_repair = time.perf_counter()
-    divergence = fidelity.divergence(mjx_replay.xpos, replay.xpos)
-    report = dict(calibration.as_dict() if calibration is not None else {"calibrated": False})
-    if calibration is not None:
-        report.update(initial_mjx)
-    report.update(
-        gradient=task.scene.grad_options.gradient,
-        mjx_divergence_median_m=float(np.median(divergence)),
-        mjx_divergence_p95_m=float(np.percentile(divergence, 95)),
+            outcome = evaluate(theta)
+    returned = outcome.predicted.ok & np.isfinite(outcome.cost)
+    clock["verify"] = time.perf_counter()
+    theta, repaired, outcome = _repair(problem, cfg, theta, returned, outcome, evaluate, seed,
+                                       say)
+    clock["repair"] = time.perf_counter()
+    report.update(_final_fidelity(problem, outcome, calibration, stamp, len(theta)))
+    return SolveResult(
+        problem=problem, config={"seed": seed, "task": dict(problem.settings),
+                                 "solve": cfg.as_dict()},
+        theta=theta, svgd_theta=np.asarray(stamp.svgd_particles, np.float64),
+        initial_theta=theta0_np, cost=outcome.cost, returned=returned, repaired=repaired,
+        predicted=outcome.predicted, verified=outcome.verified, replay=outcome.replay,
+        diagnostics=stamp.diagnostics, stamp=stamp,
+        rows=plans_mod.group(outcome.cost, returned, outcome.predicted, outcome.verified,
+                             repaired),
+        timings=_timings(clock), fidelity=report,
+        screen=None if screen is None else screen.as_dict(), source=source,
+    )
+
+
+def _timings(clock: dict[str, float]) -> dict[str, float]:
+    order = ["start", "screen", "calibrate", "stamp", "verify", "repair"]
+    out = {f"{b}_s": clock[b] - clock[a] for a, b in zip(order, order[1:], strict=False)}
+    out["total_s"] = time.perf_counter() - clock["start"]
+    return out
+
+
+def _repair(problem, cfg, theta, returned, outcome, evaluate, seed, say):
+    """Returned plans that fail in MuJoCo C, refined there; (θ, repaired (n,), outcome)."""
+    repaired = np.zeros(len(theta), bool)
+    failed = np.flatnonzero(returned & ~outcome.verified.ok)
+    if not (cfg.repair and len(failed)):
+        return theta, repaired, outcome
+    say(f"repairing {len(failed)} returned plans that fail in MuJoCo C")
+    fix = plans_mod.repair(problem, theta[failed], outcome.predicted.plan[failed],
+                           rounds=cfg.repair_rounds, samples=cfg.repair_samples, seed=seed)
+    if fix.repaired.any():
+        theta = theta.copy()
+        theta[failed[fix.repaired]] = fix.theta[fix.repaired]
+        repaired[failed[fix.repaired]] = True
+        outcome = evaluate(theta)
+    return theta, repaired, outcome
+
+
+def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int) -> dict:
+    divergence = fidelity.divergence(outcome.mjx_replay.xpos, outcome.replay.xpos)
+    p95 = float(np.percentile(divergence, 95))
+    return {
+        "gradient": problem.scene.grad_options.gradient,
+        "mjx_divergence_median_m": float(np.median(divergence)),
+        "mjx_divergence_p95_m": p95,
         # N.B. the particles end where calibration may not have looked (contacts the
         # initial ones never made): their plans are verified in C whatever this says.
-        faithful_at_end=bool(
-            calibration is None or np.percentile(divergence, 95) <= calibration.tolerance_m
-        ),
-        iterations=task.scene.grad_options.iterations,
-        ls_iterations=task.scene.grad_options.ls_iterations,
-        us_per_particle_step=_us_per_particle_step(result.diagnostics, n, task.horizon),
-    )
-    rows = plans_mod.group(cost, returned, predicted, verified, repaired)
-    timings = {
-        "screen_s": t_screen - t_start,
-        "calibrate_s": t_calibrate - t_screen,
-        "stamp_s": t_stamp - t_calibrate,
-        "verify_s": t_verify - t_stamp,
-        "repair_s": t_repair - t_verify,
-        "total_s": time.perf_counter() - t_start,
+        "faithful_at_end": bool(calibration is None or p95 <= calibration.tolerance_m),
+        "iterations": problem.scene.grad_options.iterations,
+        "ls_iterations": problem.scene.grad_options.ls_iterations,
+        "us_per_particle_step": _us_per_particle_step(stamp.diagnostics, n, problem.horizon),
     }
-    return SolveResult(
-        task=task, config={**settings, **cfg.as_dict(), "seed": seed}, theta=theta,
-        svgd_theta=np.asarray(result.svgd_particles, np.float64),
-        initial_theta=np.asarray(theta0, np.float64), cost=cost, returned=returned,
-        repaired=repaired, predicted=predicted, verified=verified, replay=replay,
-        diagnostics=result.diagnostics, stamp=result, rows=rows, timings=timings,
-        fidelity=report, screen=None if screen is None else screen.as_dict(), source=source,
-    )
 
 
-def _keep_visited(theta, final, snapshots, outcome):
+def _keep_visited(theta, final: Outcome, snapshots, evaluate):
     """Per particle, the best plan it visited: its final state or an earlier snapshot.
 
     A particle can pass through a plan that succeeds and leave it (SVGD's
@@ -585,38 +521,34 @@ def _keep_visited(theta, final, snapshots, outcome):
 
     Args:
       theta: (n, d) final particles.
-      final: (cost, predicted, verified) of `theta`.
+      final: their `Outcome`.
       snapshots: {name: (n, d)} earlier particles, latest first.
-      outcome: θ -> (cost, mjx replay, predicted, C replay, verified).
+      evaluate: θ -> `Outcome`.
 
     Returns:
       (theta (n, d) with chosen snapshots, source (n,) names: "final" or a key
       of `snapshots`).
     """
-    def good(cost, predicted, verified):
-        return predicted.ok & np.isfinite(cost) & verified.ok
-
-    cost, predicted, verified = final
-    ok = good(cost, predicted, verified)
-    plan = np.asarray(verified.plan, dtype=object).copy()
+    ok = final.good.copy()
+    plan = np.asarray(final.verified.plan, dtype=object).copy()
     theta = theta.copy()
     source = np.full(len(theta), "final", dtype=object)
     counts = Counter(plan[ok])
     seen = {}
     for name, snap in snapshots.items():
-        c, _, p, _, v = outcome(snap)
-        seen[name] = (snap, good(c, p, v), np.asarray(v.plan, dtype=object))
+        o = evaluate(snap)
+        seen[name] = (snap, o.good, np.asarray(o.verified.plan, dtype=object))
     for i in np.flatnonzero(~ok):
-        for name, (snap, good_s, plan_s) in seen.items():
-            if good_s[i]:
+        for name, (snap, good, plan_s) in seen.items():
+            if good[i]:
                 theta[i], source[i], plan[i], ok[i] = snap[i], name, plan_s[i], True
                 counts[plan_s[i]] += 1
                 break
     for i in np.flatnonzero(ok & (source == "final")):
         if counts[plan[i]] < 2:
             continue
-        for name, (snap, good_s, plan_s) in seen.items():
-            if good_s[i] and counts[plan_s[i]] == 0:
+        for name, (snap, good, plan_s) in seen.items():
+            if good[i] and counts[plan_s[i]] == 0:
                 counts[plan[i]] -= 1
                 theta[i], source[i], plan[i] = snap[i], name, plan_s[i]
                 counts[plan_s[i]] += 1

@@ -20,11 +20,12 @@ import functools
 import hashlib
 import os
 import pickle
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import jax
+
+from mjstamp.fileio import write_atomic
 
 DEFAULT_DIR = Path.home() / ".cache" / "mjstamp" / "trace"
 
@@ -127,9 +128,6 @@ def _read(path: Path):
 def _write_atomic(path: Path, data: bytes) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
+        write_atomic(path, lambda f: f.write(data))
     except OSError:
         pass  # a read-only cache folder only costs speed

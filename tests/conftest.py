@@ -8,9 +8,49 @@ later runs and by CLI subprocesses.
 
 import pytest
 
-from mjstamp.cli import configure_jax
+import mjstamp
 
-configure_jax(precision="float64")
+mjstamp.configure(precision="float64")
+
+# A puck on a plane table with one wall and a goal site: small enough that its
+# rollouts compile in seconds. Tests vary the wall's turn, the goal's size and
+# the success radius through `tiny_task`.
+TINY = """
+<mujoco model="tiny">
+  <option timestep="0.02" gravity="0 0 0"/>
+  <default><geom condim="1" solref="-5000 -5"/></default>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.1" pos="0 0 -0.05" contype="0" conaffinity="0"/>
+    <geom name="wall" type="box" pos="0.5 0 0" size="0.05 1 0.05" euler="0 0 {turn}"/>
+    <site name="goal" pos="-0.3 0.3 0" size="{goal_size}" rgba="0 0.8 0 1"/>
+    <body name="puck">
+      <joint name="px" type="slide" axis="1 0 0" damping="0.05"/>
+      <joint name="py" type="slide" axis="0 1 0" damping="0.05"/>
+      <geom name="puck" type="sphere" size="0.04" mass="0.2"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def make_tiny_task(*, horizon=40, turn=0.0, goal_size=0.02, radius=0.1, weight=50.0):
+    """The tiny task: θ = the puck's velocity; symbol: the wall; goal: the site."""
+    from mjstamp.scenes import Scene
+    from mjstamp.tasks import Task, costs
+
+    scene = Scene(TINY.format(turn=turn, goal_size=goal_size), name="tiny")
+    task = Task("tiny", scene, horizon=horizon)
+    task.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
+    task.contact("wall", "puck", "wall")
+    task.cost("goal", costs.reach("puck", ["goal"]), weight=weight)
+    task.success(costs.reaches("puck", {"goal": "goal"}, radius=radius))
+    return task
+
+
+@pytest.fixture(scope="session")
+def tiny_task():
+    """`make_tiny_task`, for tests (a factory: each call declares a fresh task)."""
+    return make_tiny_task
 
 
 @pytest.fixture(scope="session")

@@ -137,7 +137,7 @@ def test_gradients_through_the_solver_match_the_scene_physics(gradient, iteratio
 
 @pytest.mark.slow
 def test_repair_turns_a_perturbed_plan_into_one_that_verifies():
-    task = slide_task()
+    task = slide_task().build()
     task = task.on_scene(task.scene.with_grad_options(gradient="implicit", iterations=100))
     # A shot that slides into the goal, from a MuJoCo C sweep of the box.
     axis = np.linspace(-3, 3, 41)

@@ -12,28 +12,7 @@ from matplotlib.image import imread
 
 from mjstamp import figures, geometry, plans
 from mjstamp.errors import MjstampError
-from mjstamp.scenes import Scene
 from mjstamp.solve import solve
-from mjstamp.tasks import Task, costs
-
-# A puck on a plane table with a wall and a goal site (as in test_tasks), small
-# enough that a whole solve compiles and runs in seconds.
-TINY = """
-<mujoco model="tiny">
-  <option timestep="0.02" gravity="0 0 0"/>
-  <default><geom condim="1" solref="-5000 -5"/></default>
-  <worldbody>
-    <geom name="floor" type="plane" size="1 1 0.1" pos="0 0 -0.05" contype="0" conaffinity="0"/>
-    <geom name="wall" type="box" pos="0.5 0 0" size="0.05 1 0.05" euler="0 0 10"/>
-    <site name="goal" pos="-0.3 0.3 0" size="0.1" rgba="0 0.8 0 1"/>
-    <body name="puck">
-      <joint name="px" type="slide" axis="1 0 0" damping="0.05"/>
-      <joint name="py" type="slide" axis="0 1 0" damping="0.05"/>
-      <geom name="puck" type="sphere" size="0.04" mass="0.2"/>
-    </body>
-  </worldbody>
-</mujoco>
-"""
 
 CONFIG = {
     "particles": 8,
@@ -45,21 +24,18 @@ CONFIG = {
 }
 
 
-def tiny_task():
-    task = Task("tiny", Scene(TINY, name="tiny"), horizon=30)
-    task.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
-    task.contact("wall", "puck", "wall")
-    task.cost("goal", costs.reach("puck", ["goal"]), weight=50.0)
+def figures_task(tiny_task):
+    """The conftest's tiny task with a turned wall, a large goal and drawing hints."""
     # Generous radius: with 8 particles and 8 iterations some plans must verify.
-    task.success(costs.reaches("puck", {"goal": "goal"}, radius=0.6))
+    task = tiny_task(horizon=30, turn=10, goal_size=0.1, radius=0.6)
     task.display(trace=["puck"], force=[("puck", "wall")])
     return task
 
 
 @pytest.fixture(scope="module")
-def result():
+def result(tiny_task):
     """A whole solve of the tiny task (about 15 s with a warm compilation cache)."""
-    return solve(tiny_task(), CONFIG, seed=0, progress=False)
+    return solve(figures_task(tiny_task), CONFIG, seed=0, progress=False)
 
 
 def _is_readable(fig):
@@ -264,9 +240,9 @@ def test_contact_force_points_from_a_into_b(result):
     np.testing.assert_allclose(back.force, -force)
 
 
-def test_footprints_of_rotated_boxes_and_balls():
+def test_footprints_of_rotated_boxes_and_balls(tiny_task):
     """A box turned 10° about z has its corners where they should be; balls are discs."""
-    m = Scene(TINY, name="tiny").m
+    m = figures_task(tiny_task).scene.m
     frames = geometry.replay_frames(m, m.qpos0, np.zeros((0, m.nq)))
     drawn = {(f.kind, m.geom(f.id).name if f.kind == "geom" else m.site(f.id).name): f
              for f in figures.plan_drawing(m, frames, trace=[]).start}

@@ -24,7 +24,7 @@ def task():
 
 def plan_theta(task, pushes):
     """θ for hand-written plans [(side, (x, y)), ...] (yaw 0), Γ picking each side."""
-    sl = task.slices()
+    sl = task.build().slices()
     theta = np.zeros((len(pushes), task.dim))
     for i, plan in enumerate(pushes):
         logits = np.full((2, 4), -2.0)
@@ -36,7 +36,7 @@ def plan_theta(task, pushes):
 
 
 def test_skills_reproduce_the_recorded_demonstrations(task):
-    errors = skills.fit_errors(task.scene, task.setup, task.bank)
+    errors = skills.fit_errors(task.scene, task.extras["setup"], task.extras["bank"])
     assert set(errors) == {f"{s}/{p}" for s in skills.SIDES for p in ("approach", "push")}
     for name, e in errors.items():
         assert e["rms_rel"] <= 0.02, (name, e)
@@ -44,7 +44,7 @@ def test_skills_reproduce_the_recorded_demonstrations(task):
 
 
 def test_demonstrations_lift_over_the_block_and_push_it(task):
-    setup = task.setup
+    setup = task.extras["setup"]
     demos = skills.record_demonstrations(task.scene, setup, SIDE["west"])
     n_cases = len(skills.demonstration_cases(setup, SIDE["west"]))
     assert demos["approach"].shape == (n_cases, setup.approach_steps + 1, 3)
@@ -56,10 +56,10 @@ def test_demonstrations_lift_over_the_block_and_push_it(task):
 
 
 def test_references_go_from_the_pusher_to_the_goal_side(task):
-    setup = task.setup
+    setup = task.extras["setup"]
     goals = jnp.asarray([[[0.3, 0.0, 0.0], [0.3, 0.3, 0.2]]])
     onehot = jnp.asarray([[np.eye(4)[SIDE["west"]], np.eye(4)[SIDE["south"]]]])
-    x, v = skills.references(task.bank, setup, onehot, goals)
+    x, v = skills.references(task.extras["bank"], setup, onehot, goals)
     assert x.shape == v.shape == (1, setup.horizon(2), 3)
     x = np.asarray(x)[0]
     touch = setup.half + setup.radius
@@ -117,7 +117,7 @@ def test_bad_settings_are_one_line_errors(tmp_path):
 
 def test_an_explicit_stale_bank_is_refused_not_replaced(task, tmp_path):
     path = tmp_path / "bank.npz"
-    stale = bank_mod.SkillBank(skills=dict(task.bank.skills), fingerprint="0" * 16)
+    stale = bank_mod.SkillBank(skills=dict(task.extras["bank"].skills), fingerprint="0" * 16)
     bank_mod.save(stale, path)
     before = path.read_bytes()
     with pytest.raises(MjstampError, match="stale"):
@@ -128,7 +128,7 @@ def test_an_explicit_stale_bank_is_refused_not_replaced(task, tmp_path):
 def test_cli_pushing_bad_input(capsys):
     cases = [
         (["solve", "pushing", "--max-pushes", "0"], "--max-pushes=0 must be >= 1"),
-        (["solve", "billiards", "--max-pushes", "2"], "task 'billiards' has no pushes"),
+        (["solve", "billiards", "--max-pushes", "2"], "task 'billiards' has no such option"),
         (["solve", "pushing", "--set", "skill_bank=/nonexistent/bank.npz"], "not found"),
     ]
     for argv, expected in cases:
@@ -144,7 +144,7 @@ def test_cli_fits_a_skill_bank_file(tmp_path, capsys):
     assert report["path"] == str(out) and out.is_file()
     assert max(e["rms_rel"] for e in report["errors"].values()) <= 0.02
     task, _ = tasks.load("pushing", skill_bank=str(out))  # a fresh file is current
-    assert task.bank.fingerprint == report["fingerprint"]
+    assert task.extras["bank"].fingerprint == report["fingerprint"]
 
 
 def test_push_skills_reach_any_goal_in_the_workspace(task):
@@ -160,8 +160,8 @@ def test_push_skills_reach_any_goal_in_the_workspace(task):
     rng = np.random.default_rng(0)
     starts = rng.uniform(low, high, (64, 3))
     goals = rng.uniform(low, high, (64, 3))
-    setup = task.setup
-    for name, skill in task.bank.skills.items():
+    setup = task.extras["setup"]
+    for name, skill in task.extras["bank"].skills.items():
         steps = setup.approach_steps if name.endswith("approach") else setup.push_steps
 
         def end(a, b, skill=skill, steps=steps):

@@ -49,5 +49,5 @@ def test_seeding_is_reproducible_and_spread_over_task_plans():
         "0-goal", "1-goal"}
     # A screen of 1 is the prior draw itself.
     prior, none = seeding.seed_particles(task, key, 8, screen=1)
-    np.testing.assert_array_equal(prior, np.asarray(task.initial_particles(key, 8)))
+    np.testing.assert_array_equal(prior, np.asarray(task.build().init(key, 8)))
     assert none.successes == 0

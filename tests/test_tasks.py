@@ -11,11 +11,9 @@ from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
 from mjstamp.tasks import Task, costs
 
-# A puck on a plane table with one wall and a goal site: small enough to compile fast.
 TINY = """
 <mujoco model="tiny">
   <option timestep="0.02" gravity="0 0 0"/>
-  <default><geom condim="1" solref="-5000 -5"/></default>
   <worldbody>
     <geom name="floor" type="plane" size="1 1 0.1" pos="0 0 -0.05" contype="0" conaffinity="0"/>
     <geom name="wall" type="box" pos="0.5 0 0" size="0.05 1 0.05"/>
@@ -27,16 +25,7 @@ TINY = """
     </body>
   </worldbody>
 </mujoco>
-"""
-
-
-def tiny_task(horizon=40):
-    task = Task("tiny", Scene(TINY, name="tiny"), horizon=horizon)
-    task.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
-    task.contact("wall", "puck", "wall")
-    task.cost("goal", costs.reach("puck", ["goal"]), weight=50.0)
-    task.success(costs.reaches("puck", {"goal": "goal"}, radius=0.1))
-    return task
+"""  # names only (declaration errors); solves use the conftest's `tiny_task`
 
 
 def test_declaration_errors_name_the_culprit():
@@ -120,7 +109,7 @@ def test_billiards_contacts_match_mujoco_contact_list(billiards_task):
 
 
 @pytest.mark.slow
-def test_tiny_task_solves_and_results_round_trip(tmp_path):
+def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task):
     from mjstamp.solve import solve
 
     task = tiny_task()
@@ -133,7 +122,7 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path):
     # Reaching the goal pays: the mean cost fell over the run.
     d = result.diagnostics
     assert d.logdensity_mean[-1] > d.logdensity_mean[0]
-    written = plans.save(tmp_path, summary, result.arrays(), model=result.task.scene.m)
+    written = result.save(tmp_path, figures=False)
     assert {p.name for p in written} == {
         "plans.json", "particles.npz", "trajectories.npz", "scene.mjb"}
     assert plans.load_model(tmp_path).ngeom == result.task.scene.m.ngeom
@@ -149,7 +138,7 @@ def test_results_directory_errors(tmp_path):
     with pytest.raises(MjstampError, match="no plans.json"):
         plans.load(tmp_path)
     (tmp_path / "plans.json").write_text(json.dumps({"schema_version": 0}))
-    with pytest.raises(MjstampError, match="schema_version 0; this mjstamp reads 2"):
+    with pytest.raises(MjstampError, match="schema_version 0; this mjstamp reads 3"):
         plans.load(tmp_path)
 
 
@@ -221,3 +210,80 @@ def test_free_joint_coordinates_and_spatial_goals():
     replay = plans.simulate_c(task, theta)
     ok, _ = task.success_fn(replay)
     assert not ok[0]  # 0.9 m below the goal, though right under it in x-y
+
+
+@pytest.mark.slow
+def test_composed_log_posterior_gradient_matches_finite_differences(tiny_task):
+    """The gradient of the whole log ρ (rollout, symbols, costs, bounds) vs differences.
+
+    Both on the same MJX model in float64. Tolerance 1e-5 relative: differences
+    with eps = 1e-6 are good to ~1e-9 on smooth stretches, and the soft
+    indicator and softmin are smooth; particles are drawn away from contact.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    problem = tiny_task(horizon=30).build()
+    theta = jnp.asarray([[-1.2, 0.9], [0.4, -0.8], [1.5, 0.3]])
+
+    def total(th):
+        return jnp.sum(problem.logdensity(th)[0])
+
+    grad = np.asarray(jax.jit(jax.grad(total))(theta))
+    logp = jax.jit(lambda th: problem.logdensity(th)[0])
+    eps = 1e-6
+    fd = np.zeros_like(grad)
+    for j in range(2):
+        step = jnp.zeros_like(theta).at[:, j].set(eps)
+        fd[:, j] = (np.asarray(logp(theta + step)) - np.asarray(logp(theta - step))) / (2 * eps)
+    assert np.all(np.isfinite(grad)) and np.abs(grad).max() > 1e-3
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-7)
+
+
+def test_fingerprint_follows_the_declaration(tiny_task):
+    """Same declaration, same key (a re-run); any change of code or constant, a new one."""
+    a, b = tiny_task(), tiny_task()
+    assert a.fingerprint() == b.fingerprint()
+    assert tiny_task(weight=51.0).fingerprint() != a.fingerprint()
+    assert tiny_task(radius=0.2).fingerprint() != a.fingerprint()  # a closure constant
+
+    def declare(scale):
+        task = tiny_task()
+        task.cost("extra", lambda r: scale * r.body_pos("puck")[:, -1, 0])
+        return task
+
+    assert declare(1.0).fingerprint() == declare(1.0).fingerprint()
+    assert declare(2.0).fingerprint() != declare(1.0).fingerprint()
+    other = tiny_task()
+    other.cost("extra", lambda r: 1.0 * r.body_pos("puck")[:, -1, 1])  # other code
+    assert other.fingerprint() != declare(1.0).fingerprint()
+    # Building is memoised while nothing changes, and is redone after a change.
+    assert a.build() is a.build()
+    first = a.build()
+    a.prior("p", lambda params: -jnp_sum(params["v"]))
+    assert a.build() is not first and a.build().fingerprint != first.fingerprint
+
+
+def jnp_sum(x):
+    import jax.numpy as jnp
+
+    return jnp.sum(x**2, axis=1)
+
+
+def test_problem_is_frozen_and_kernels_can_be_replaced(tiny_task):
+    import dataclasses
+
+    from mjstamp import svgd
+
+    task = tiny_task()
+    problem = task.build()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        problem.horizon = 3
+    assert problem.symbols == ("wall",) and problem.dim == 2 and not problem.has_actions
+    kernel = svgd.rbf()
+    task.use_kernel(kernel)
+    assert task.build().kernel is kernel
+    task.use_kernel(lambda p: svgd.feature_kernel(svgd.rbf(), include_inputs=False))
+    assert isinstance(task.build().kernel, svgd.FeatureKernel)
+    with pytest.raises(MjstampError, match="kernel weight 'angle'.*valid: continuous"):
+        task.use_kernel(weights={"angle": 2.0})

@@ -326,7 +326,7 @@ def test_load_results_rejects_bad_directories(toy_results, tmp_path):
     data = json.loads((old / "plans.json").read_text())
     data["schema_version"] = 1
     (old / "plans.json").write_text(json.dumps(data))
-    with pytest.raises(MjstampError, match=r"schema_version 1; playback needs 2 \(re-run "
+    with pytest.raises(MjstampError, match=r"schema_version 1; this mjstamp reads 3 \(re-run "
                                            r"`mjstamp solve toy --out"):
         viz.load_results(old)
     other = tmp_path / "other"
@@ -564,7 +564,7 @@ def test_cli_view_bad_input(toy_results, tmp_path, capsys, busy_port):
     data = json.loads((old / "plans.json").read_text())
     (old / "plans.json").write_text(json.dumps(data | {"schema_version": 1}))
     assert main(["view", str(old)]) == 2
-    assert "schema_version 1; playback needs 2" in _one_error_line(capsys)
+    assert "schema_version 1; this mjstamp reads 3" in _one_error_line(capsys)
     assert main(["view", str(toy_results), "--plan", "9", "--html", str(tmp_path / "x.html")]) == 2
     assert _one_error_line(capsys).endswith("valid: 0, 3, 5, 7")
     assert main(["view", str(old), "--port", "70000"]) == 2

@@ -1,8 +1,9 @@
 """mjstamp.relax: pure functions of arrays that relax discrete plan variables.
 
-Γ / Γ̃ (hard and soft one-hots per block), the uniform base distribution p₀, soft
-contact indicators and softmin aggregations. Nothing here imports MuJoCo or
-`mjstamp.svgd`.
+What it is for: Γ / Γ̃ (hard and soft one-hots per block), the uniform base
+distribution p₀, soft contact indicators and softmin aggregations.
+
+What it may import: jax and numpy only (no MuJoCo, no `mjstamp.svgd`).
 
 References:
   STAMP §IV-A, App. A, App. B-B, App. B-D.

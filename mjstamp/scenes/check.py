@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -66,22 +67,36 @@ class CheckSpec:
     ctrl_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
 
-# Per shipped scene: what a planner varies there. Billiards: the cue ball's
-# initial velocity over a 2 s shot (long enough for two or three cushions).
-# Pushing: pusher servo set-points (joint coordinates: the pusher starts 0.15 m
-# west of the block) in three segments, drawn so that the pusher stays at table
-# height and ends up pressing into the block's west side in most draws.
-SCENE_CHECKS = {
-    "billiards": CheckSpec(horizon=200, qvel_joints=("cue_x", "cue_y"), qvel_range=3.0),
-    "pushing": CheckSpec(
-        horizon=150, ctrl_segments=3,
-        ctrl_box=((0.0, -0.12, -0.01, -0.3, -0.3, -0.05), (0.35, 0.12, 0.01, 0.3, 0.3, 0.05)),
-    ),
-}
+@dataclasses.dataclass(frozen=True)
+class Particles:
+    """What a check varies.
+
+    Attributes:
+      horizon: rollout steps.
+      dim: coordinates of a particle θ.
+      to_inputs: (θ (n, dim), xp) -> (qpos0, qvel0, ctrl), with xp numpy or jax.numpy.
+      sample: (numpy Generator, n) -> θ (n, dim).
+    """
+
+    horizon: int
+    dim: int
+    to_inputs: Callable
+    sample: Callable
 
 
-def _parameterisation(scene: Scene, spec: CheckSpec):
-    """Returns (dim, to_inputs, sample) for the particles of `spec`."""
+def task_particles(problem) -> Particles:
+    """A task's own particles: θ uniform in its bounds over its horizon, its inputs."""
+    low, high = problem.low, problem.high
+
+    def sample(rng, n):
+        return low + rng.uniform(size=(n, problem.dim)) * (high - low)
+
+    return Particles(problem.horizon, problem.dim,
+                     lambda theta, xp: problem.inputs(theta, xp=xp), sample)
+
+
+def _parameterisation(scene: Scene, spec: CheckSpec) -> Particles:
+    """The particles of `spec` on a bare scene."""
     m = scene.m
     qpos0, qvel0 = scene.initial_state()
     T = spec.horizon
@@ -124,7 +139,7 @@ def _parameterisation(scene: Scene, spec: CheckSpec):
             parts.append(u.reshape(n, -1))
         return np.concatenate(parts, axis=1)
 
-    return dim, to_inputs, sample
+    return Particles(T, dim, to_inputs, sample)
 
 
 def check_scene(
@@ -137,22 +152,54 @@ def check_scene(
     tolerance: float | None = None,
     progress=None,
 ) -> dict:
-    """Measures the fidelity and gradient health of `scene`; see the module docstring.
-
-    The differentiated function is f(θ) = c₁·qpos_T + c₂·mean_t(qpos_t), with
-    c₁, c₂ fixed random unit vectors: it touches every coordinate of the state
-    at every step, so a NaN anywhere in the backward pass shows up.
+    """Measures the fidelity and gradient health of a bare scene; see the module docstring.
 
     Args:
       scene: the scene.
       particles: N random particles.
-      spec: what to randomise; defaults to `SCENE_CHECKS[scene.name]` or, for
-        other scenes, every initial joint velocity in [-1, 1].
+      spec: what to randomise; default `CheckSpec()`: every joint's initial
+        velocity in [-1, 1] over 100 steps (a task varies its own θ: `check_task`).
       seed: draws and the projection vectors.
       fd_eps: central-difference step (float64, MuJoCo C).
       tolerance: physics divergence allowed to 95% of the particles, metres;
         default `fidelity.default_tolerance(scene)`.
       progress: optional callable(str) for status lines.
+
+    Returns:
+      The report of `check`.
+    """
+    draws = _parameterisation(scene, spec or CheckSpec())
+    return check(scene, draws, particles=particles, seed=seed, fd_eps=fd_eps,
+                 tolerance=tolerance, progress=progress)
+
+
+def check_task(task, *, particles: int = 256, **kwargs) -> dict:
+    """`check` on a task's own particles (θ in its bounds, its horizon and inputs).
+
+    Args:
+      task: a `Task` or its `Problem`.
+      particles: N random particles.
+      **kwargs: as `check_scene` (seed, fd_eps, tolerance, progress).
+    """
+    problem = task.build() if hasattr(task, "build") else task
+    return check(problem.scene, task_particles(problem), particles=particles, **kwargs)
+
+
+def check(
+    scene: Scene,
+    draws: Particles,
+    *,
+    particles: int = 256,
+    seed: int = 0,
+    fd_eps: float = 1e-6,
+    tolerance: float | None = None,
+    progress=None,
+) -> dict:
+    """Measures fidelity and gradient health on the particles `draws` describes.
+
+    The differentiated function is f(θ) = c₁·qpos_T + c₂·mean_t(qpos_t), with
+    c₁, c₂ fixed random unit vectors: it touches every coordinate of the state
+    at every step, so a NaN anywhere in the backward pass shows up.
 
     Returns:
       A JSON-ready dict: healthy, problems, physics_divergence_median_m,
@@ -161,60 +208,31 @@ def check_scene(
       (when unfaithful), and the settings.
     """
     if particles < 1:
-        raise MjstampError(f"--particles={particles} must be >= 1")
-    spec = spec or SCENE_CHECKS.get(scene.name, CheckSpec())
+        raise MjstampError(f"particles={particles} must be >= 1")
     say = progress or (lambda _: None)
     tolerance = fidelity.default_tolerance(scene) if tolerance is None else float(tolerance)
-    dim, to_inputs, sample = _parameterisation(scene, spec)
-    if dim == 0:
+    if draws.dim == 0:
         raise MjstampError(f"scene {scene.name!r} has no joints or actuators to vary")
     rng = np.random.default_rng(seed)
     c1, c2 = rng.normal(size=(2, scene.m.nq))
     c1, c2 = c1 / np.linalg.norm(c1), c2 / np.linalg.norm(c2)
-    theta = sample(rng, particles)
-
+    theta = draws.sample(rng, particles)
     say(f"MJX rollout vs MuJoCo C with the scene's own solver ({particles} x "
-        f"{spec.horizon} steps)")
-    rollout = scene.rollout_fn(spec.horizon, fields=("qpos",))
-    inputs = to_inputs(theta, np)
-    qpos_mjx = np.asarray(rollout(*inputs)["qpos"], np.float64)
-    qpos_c = replay(scene, *inputs, solver="scene")["qpos"]
+        f"{draws.horizon} steps)")
+    rollout = scene.rollout_fn(draws.horizon, fields=("qpos",))
+    inputs = tuple(np.asarray(a, np.float64) for a in draws.to_inputs(theta, np))
     div = fidelity.divergence(
-        fidelity.body_positions(scene.m, qpos_mjx), fidelity.body_positions(scene.m, qpos_c)
+        fidelity.body_positions(scene.m, np.asarray(rollout(*inputs)["qpos"], np.float64)),
+        fidelity.body_positions(scene.m, replay(scene, *inputs, solver="scene")["qpos"]),
     )
-    grads = _gradients(scene, spec, rollout, to_inputs, theta, c1, c2, say)
+    grads = _gradients(scene, draws, rollout, theta, c1, c2, say)
     rel = {}
     for solver in ("scene", "grad"):
         say(f"central differences in MuJoCo C, {solver} solver "
-            f"({2 * dim * particles} float64 rollouts)")
-        fd = _finite_differences(scene, to_inputs, theta, c1, c2, fd_eps, solver)
+            f"({2 * draws.dim * particles} float64 rollouts)")
+        fd = _finite_differences(scene, draws.to_inputs, theta, c1, c2, fd_eps, solver)
         rel[solver] = _relative_errors(grads["grad"], fd, grads["finite"])
-    report = {
-        "scene": scene.name,
-        "precision": scene.precision,
-        "particles": particles,
-        "dim": dim,
-        "horizon": spec.horizon,
-        "physics_divergence_median_m": float(np.median(div)),
-        "physics_divergence_p95_m": float(np.percentile(div, 95)),
-        "physics_divergence_max_m": float(np.max(div)),
-        "tolerance_m": tolerance,
-        "faithful": bool(np.percentile(div, 95) <= tolerance),
-        "nonfinite": int((~grads["finite"]).sum()),
-        "nonfinite_fraction": float((~grads["finite"]).mean()),
-        **_error_stats("rel_err", rel["scene"]),
-        **_error_stats("model_rel_err", rel["grad"]),
-        "grad_norm_median": grads["norm_median"],
-        "us_per_particle_step": grads["seconds"] / (particles * spec.horizon) * 1e6,
-        "compile_s": grads["compile_s"],
-        "fd_eps": fd_eps,
-        "solver": scene.grad_options.solver,
-        "gradient": scene.grad_options.gradient,
-        "iterations": scene.grad_options.iterations,
-        "ls_iterations": scene.grad_options.ls_iterations,
-    }
-    report["problems"] = _problems(report)
-    report["healthy"] = not report["problems"]
+    report = _report(scene, draws, particles, div, tolerance, grads, rel, fd_eps)
     if not report["faithful"]:
         say("calibrating: the cheapest faithful solver setting")
         calibration = fidelity.calibrate(scene, *inputs, tolerance=tolerance, progress=say)
@@ -229,18 +247,48 @@ def check_scene(
     return report
 
 
-def _gradients(scene, spec, rollout, to_inputs, theta, c1, c2, say) -> dict:
+def _report(scene, draws, particles, div, tolerance, grads, rel, fd_eps) -> dict:
+    report = {
+        "scene": scene.name,
+        "precision": scene.precision,
+        "particles": particles,
+        "dim": draws.dim,
+        "horizon": draws.horizon,
+        "physics_divergence_median_m": float(np.median(div)),
+        "physics_divergence_p95_m": float(np.percentile(div, 95)),
+        "physics_divergence_max_m": float(np.max(div)),
+        "tolerance_m": tolerance,
+        "faithful": bool(np.percentile(div, 95) <= tolerance),
+        "nonfinite": int((~grads["finite"]).sum()),
+        "nonfinite_fraction": float((~grads["finite"]).mean()),
+        **_error_stats("rel_err", rel["scene"]),
+        **_error_stats("model_rel_err", rel["grad"]),
+        "grad_norm_median": grads["norm_median"],
+        "us_per_particle_step": grads["seconds"] / (particles * draws.horizon) * 1e6,
+        "compile_s": grads["compile_s"],
+        "fd_eps": fd_eps,
+        "solver": scene.grad_options.solver,
+        "gradient": scene.grad_options.gradient,
+        "iterations": scene.grad_options.iterations,
+        "ls_iterations": scene.grad_options.ls_iterations,
+    }
+    report["problems"] = _problems(report)
+    report["healthy"] = not report["problems"]
+    return report
+
+
+def _gradients(scene, draws: Particles, rollout, theta, c1, c2, say) -> dict:
     """Reverse-mode AD of the objective on every particle, timed."""
     particles = len(theta)
 
     def objective(theta):
-        qpos = rollout(*to_inputs(theta, jnp))["qpos"]
+        qpos = rollout(*draws.to_inputs(theta, jnp))["qpos"]
         return jnp.sum(qpos[:, -1] @ c1 + qpos.mean(axis=1) @ c2)
 
     # Summing over particles gives every particle's gradient in one reverse pass.
     value_and_grad = jax.jit(jax.value_and_grad(objective))
     theta_j = jnp.asarray(theta, scene.dtype)
-    say(f"compiling value-and-grad rollout ({particles} x {spec.horizon} steps)")
+    say(f"compiling value-and-grad rollout ({particles} x {draws.horizon} steps)")
     t0 = time.perf_counter()
     jax.block_until_ready(value_and_grad(theta_j))
     compile_s = time.perf_counter() - t0
@@ -263,7 +311,8 @@ def _finite_differences(scene, to_inputs, theta, c1, c2, eps, solver) -> np.ndar
     plus = np.repeat(theta[:, None, :], dim, axis=1) + eps * np.eye(dim)
     minus = np.repeat(theta[:, None, :], dim, axis=1) - eps * np.eye(dim)
     both = np.concatenate([plus, minus]).reshape(-1, dim)
-    qpos = replay(scene, *to_inputs(both, np), solver=solver)["qpos"]
+    qpos = replay(scene, *(np.asarray(a, np.float64) for a in to_inputs(both, np)),
+                  solver=solver)["qpos"]
     f = (qpos[:, -1] @ c1 + qpos.mean(axis=1) @ c2).reshape(2, particles, dim)
     return (f[0] - f[1]) / (2 * eps)
 

@@ -1018,6 +1018,8 @@ def _refine_ridge(g, w: jax.Array) -> jax.Array:
     return circle(t)
 
 
+# N.B. over 80 lines: one numerical routine (direction search, witness points, the
+# gradient path) whose steps share a dozen locals; split, they would travel as arguments.
 def _convex_pair(core_a: int, core_b: int):
     """Pair function for two curved (or point/segment) cores, by the dual."""
     faces = (_SEGMENT, _CYLINDER_CORE)  # supports that can be a whole face

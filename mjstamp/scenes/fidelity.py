@@ -220,6 +220,7 @@ def _key(scene, inputs, tolerance, candidates) -> str:
     return h.hexdigest()[:24]
 
 
+# N.B. over 80 lines: 40 of them the docstring of its arguments.
 def calibrate(
     scene,
     qpos0: np.ndarray,
@@ -274,15 +275,7 @@ def calibrate(
             raise MjstampError("calibrate needs ctrl or horizon")
         ctrl = np.zeros((len(qpos0), int(horizon), scene.m.nu))
     ctrl = np.asarray(ctrl, np.float64)
-    g = scene.grad_options
-    base = (g.gradient, g.iterations, g.ls_iterations)
-    todo = [base]
-    for gradient, iterations, ls in candidates:
-        wanted = own if iterations is None else iterations
-        if gradient == "unrolled" and wanted > budget:
-            continue  # over budget; the implicit loop is capped at the budget instead
-        if (gradient, min(wanted, budget), ls) not in todo:
-            todo.append((gradient, min(wanted, budget), ls))
+    todo = _settings(scene, candidates, own, budget)
     path = CACHE / f"{scene.name}-{_key(scene, (qpos0, qvel0, ctrl), tolerance, todo)}.json"
     if cache and path.is_file():
         try:
@@ -315,10 +308,27 @@ def calibrate(
         seconds=time.perf_counter() - started,
     )
     if cache:
-        try:
-            CACHE.mkdir(parents=True, exist_ok=True)
-            payload = json.dumps(result.as_dict()).encode()
-            write_atomic(path, lambda f: f.write(payload))
-        except OSError:
-            pass  # a read-only cache only costs time
+        _write(path, result)
     return result
+
+
+def _settings(scene, candidates, own: int, budget: int) -> list[tuple[str, int, int]]:
+    """The scene's configured model, then the candidates within budget, in order."""
+    g = scene.grad_options
+    todo = [(g.gradient, g.iterations, g.ls_iterations)]
+    for gradient, iterations, ls in candidates:
+        wanted = own if iterations is None else iterations
+        if gradient == "unrolled" and wanted > budget:
+            continue  # over budget; the implicit loop is capped at the budget instead
+        if (gradient, min(wanted, budget), ls) not in todo:
+            todo.append((gradient, min(wanted, budget), ls))
+    return todo
+
+
+def _write(path: Path, result: Calibration) -> None:
+    try:
+        CACHE.mkdir(parents=True, exist_ok=True)
+        payload = json.dumps(result.as_dict()).encode()
+        write_atomic(path, lambda f: f.write(payload))
+    except OSError:
+        pass  # a read-only cache only costs time

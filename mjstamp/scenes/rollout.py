@@ -109,7 +109,7 @@ def build_rollout(
     fields = _check_fields(fields)
     chunk = _chunk_length(horizon, checkpoint)
     m, mx, dtype = scene.m, scene.mx, scene.dtype
-    nq, nv, nu = m.nq, m.nv, m.nu
+    nu = m.nu
     need_kinematics = any(f in POSE_FIELDS for f in fields)
     # N.B. built eagerly even when first asked for inside a trace (a task's log
     # posterior under jit): a traced d0 memoised in the scene would leak.
@@ -141,31 +141,36 @@ def build_rollout(
     batched = jax.jit(jax.vmap(single))
 
     def rollout(qpos0, qvel0, ctrl=None) -> Trajectory:
-        qpos0 = jnp.asarray(qpos0, dtype)
-        qvel0 = jnp.asarray(qvel0, dtype)
-        if qpos0.ndim != 2 or qpos0.shape[1] != nq:
-            raise MjstampError(f"qpos0 has shape {qpos0.shape}; valid: (n, {nq})")
-        n = qpos0.shape[0]
-        if qvel0.shape != (n, nv):
-            raise MjstampError(f"qvel0 has shape {qvel0.shape}; valid: ({n}, {nv})")
-        if ctrl is None:
-            if nu:
-                raise MjstampError(
-                    f"ctrl is missing; scene {scene.name!r} has {nu} actuators: "
-                    f"pass ctrl of shape ({n}, {horizon}, {nu})"
-                )
-            ctrl = jnp.zeros((n, horizon, 0), dtype)
-        ctrl = jnp.asarray(ctrl, dtype)
-        if ctrl.shape != (n, horizon, nu):
-            raise MjstampError(
-                f"ctrl has shape {ctrl.shape}; valid: ({n}, {horizon}, {nu})"
-            )
-        return batched(qpos0, qvel0, ctrl)
+        return batched(*_checked_inputs(scene, horizon, qpos0, qvel0, ctrl))
 
     rollout.horizon = horizon
     rollout.fields = fields
     rollout.chunk = chunk
     return rollout
+
+
+def _checked_inputs(scene, horizon: int, qpos0, qvel0, ctrl):
+    """(qpos0, qvel0, ctrl) as arrays of the scene's dtype, or a one-line shape error."""
+    m, dtype = scene.m, scene.dtype
+    nq, nv, nu = m.nq, m.nv, m.nu
+    qpos0 = jnp.asarray(qpos0, dtype)
+    qvel0 = jnp.asarray(qvel0, dtype)
+    if qpos0.ndim != 2 or qpos0.shape[1] != nq:
+        raise MjstampError(f"qpos0 has shape {qpos0.shape}; valid: (n, {nq})")
+    n = qpos0.shape[0]
+    if qvel0.shape != (n, nv):
+        raise MjstampError(f"qvel0 has shape {qvel0.shape}; valid: ({n}, {nv})")
+    if ctrl is None:
+        if nu:
+            raise MjstampError(
+                f"ctrl is missing; scene {scene.name!r} has {nu} actuators: "
+                f"pass ctrl of shape ({n}, {horizon}, {nu})"
+            )
+        ctrl = jnp.zeros((n, horizon, 0), dtype)
+    ctrl = jnp.asarray(ctrl, dtype)
+    if ctrl.shape != (n, horizon, nu):
+        raise MjstampError(f"ctrl has shape {ctrl.shape}; valid: ({n}, {horizon}, {nu})")
+    return qpos0, qvel0, ctrl
 
 
 def replay(

@@ -1,9 +1,13 @@
 """mjstamp.skills: goal-conditioned DMP skills learnt from demonstrations, and their bank.
 
-`fit` turns demonstrations into a DMP (a linear regression), `rollout` plays it
-from any start to any goal at any speed (pure JAX, differentiable, vmappable),
-and a `SkillBank` keeps fitted skills in a versioned file that is refitted when
-the code that made its demonstrations changes.
+What it is for: `fit` turns demonstrations into a DMP (a linear regression),
+`rollout` plays it from any start to any goal at any speed (pure JAX,
+differentiable, vmappable), a `SkillBank` keeps fitted skills in a versioned
+file that is refitted when the code that made its demonstrations changes, and
+`skills.pushing` records and fits the pushing demonstrations.
+
+What it may import: jax, numpy, mujoco (recording demonstrations), and of
+mjstamp only `errors` and `fileio`.
 
 References:
   STAMP §III-C eq. (5) and §IV-C.

@@ -293,6 +293,7 @@ class IterationRecord(NamedTuple):
     self_weight_median: Any
 
 
+# N.B. over 80 lines: 36 of them the docstring; the loop itself is `_Loop`.
 def run_stamp(
     logdensity_fn: LogDensityFn,
     initial_particles: jax.Array | Callable[[jax.Array], jax.Array],

@@ -1,29 +1,101 @@
-"""Tasks: TAMP problems declared on scenes, and a registry the CLI finds them in.
+"""Tasks: TAMP problems declared on scenes, compiled into Problems, and a registry.
 
-A task module registers a factory with `register`; `load(name, **overrides)`
-builds the task from its `default_config()` updated with the overrides
-(mujoco_playground's `load(name, config_overrides=...)` pattern).
+A `Task` is a declaration (variables, symbols, costs, success); `task.build()`
+compiles it into the frozen `Problem` that solvers consume. A task module
+registers a factory with `register`: its task settings (`default_config()`)
+and its solve settings (`solve_config()`, a `mjstamp.config.SolveConfig`'s
+fields) are two configs, as mujoco_playground separates an environment's config
+from its training config. `load(name, **overrides)` builds the task; each
+override goes to whichever config has the key, and an unknown key is an error
+naming both. A registry entry may also contribute command-line options of
+`mjstamp solve` (pushing's `--max-pushes`) and commands (`mjstamp skills`).
+
+May import: scenes/, relax/, svgd/ (kernels), skills/ (pushing), config.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
-import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
+from mjstamp.config import SolveConfig
 from mjstamp.errors import MjstampError, valid_list
-from mjstamp.tasks.task import Contact, Rollout, Task, Variable
+from mjstamp.tasks.declaration import Contact, Kind, Term, Variable
+from mjstamp.tasks.problem import Decoded, Problem, Rollout
+from mjstamp.tasks.task import Task
 
-# name -> (default_config() -> dict, make(config: dict) -> Task, one-line summary)
-_REGISTRY: dict[str, tuple[Callable[[], dict], Callable[[dict], Task], str]] = {}
+
+@dataclasses.dataclass(frozen=True)
+class Option:
+    """A `mjstamp solve` flag a task contributes: `--flag VALUE` sets task setting `key`."""
+
+    flag: str
+    key: str
+    type: Callable[[str], Any]
+    help: str
+    metavar: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """A `mjstamp NAME` command a task contributes.
+
+    Attributes:
+      name: the command's name.
+      help: one line.
+      add_arguments: fn(argparse parser) adding its arguments.
+      run: fn(parsed args) -> exit status.
+    """
+
+    name: str
+    help: str
+    add_arguments: Callable[[Any], None]
+    run: Callable[[Any], int]
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """A registered task: its two configs, its factory and what it adds to the CLI."""
+
+    name: str
+    default_config: Callable[[], dict]
+    make: Callable[[dict], Task]
+    summary: str
+    solve_config: Callable[[], dict]
+    options: tuple[Option, ...]
+    commands: tuple[Command, ...]
+
+
+_REGISTRY: dict[str, Entry] = {}
 _BUILTIN_MODULES = ("mjstamp.tasks.billiards", "mjstamp.tasks.pushing")
 
 
-def register(name: str, default_config: Callable[[], dict], summary: str = ""):
-    """Decorator registering `make(config) -> Task` under `name`."""
+def register(
+    name: str,
+    default_config: Callable[[], dict],
+    summary: str = "",
+    *,
+    solve_config: Callable[[], dict] | None = None,
+    options: Sequence[Option] = (),
+    commands: Sequence[Command] = (),
+):
+    """Decorator registering `make(settings) -> Task` under `name`.
+
+    Args:
+      name: the task's name.
+      default_config: () -> the task's own settings.
+      summary: one line for `mjstamp tasks`.
+      solve_config: () -> the task's solve settings (fields of `SolveConfig`
+        that differ from its defaults); validated when the task is loaded.
+      options: `mjstamp solve` flags this task contributes.
+      commands: `mjstamp` commands this task contributes.
+    """
 
     def wrap(make: Callable[[dict], Task]):
-        _REGISTRY[name] = (default_config, make, summary)
+        _REGISTRY[name] = Entry(name, default_config, make, summary,
+                                solve_config or dict, tuple(options), tuple(commands))
         return make
 
     return wrap
@@ -34,53 +106,81 @@ def _load_builtins() -> None:
         importlib.import_module(module)
 
 
+def entries() -> dict[str, Entry]:
+    """{name: registry entry} of every registered task."""
+    _load_builtins()
+    return dict(sorted(_REGISTRY.items()))
+
+
 def names() -> list[str]:
     """Registered task names."""
-    _load_builtins()
-    return sorted(_REGISTRY)
+    return list(entries())
 
 
 def summaries() -> dict[str, str]:
     """{task name: one-line summary}."""
-    _load_builtins()
-    return {name: entry[2] for name, entry in sorted(_REGISTRY.items())}
+    return {name: e.summary for name, e in entries().items()}
+
+
+def _entry(name: str) -> Entry:
+    table = entries()
+    if name not in table:
+        raise MjstampError(f"unknown task {name!r}; valid: {valid_list(table)}")
+    return table[name]
 
 
 def default_config(name: str) -> dict:
-    """The default configuration of a registered task."""
-    _load_builtins()
-    if name not in _REGISTRY:
-        raise MjstampError(f"unknown task {name!r}; valid: {valid_list(sorted(_REGISTRY))}")
-    return _REGISTRY[name][0]()
+    """The task settings of a registered task (its `default_config()`)."""
+    return _entry(name).default_config()
 
 
-def load(name: str, **overrides) -> tuple[Task, dict]:
-    """Builds a registered task; returns (task, the config it was built with)."""
-    config = default_config(name)
-    unknown = sorted(set(overrides) - set(config))
+def solve_config(name: str) -> SolveConfig:
+    """The solve settings of a registered task: `SolveConfig` with its overrides."""
+    return SolveConfig.from_dict(_entry(name).solve_config())
+
+
+def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
+    """Builds a registered task; returns (task, its solve settings).
+
+    Each override is a task setting or a solve setting (`SolveConfig` field).
+
+    Raises:
+      MjstampError: an unknown task or setting (naming both kinds of valid keys).
+    """
+    entry = _entry(name)
+    settings = entry.default_config()
+    solve_keys = SolveConfig.fields()
+    unknown = sorted(set(overrides) - set(settings) - set(solve_keys))
     if unknown:
         raise MjstampError(
-            f"task {name!r} has no setting {unknown[0]!r}; valid: {valid_list(sorted(config))}"
+            f"task {name!r} has no setting {unknown[0]!r}; valid task settings: "
+            f"{valid_list(sorted(settings))}; valid solve settings: {valid_list(solve_keys)}"
         )
-    config.update(overrides)
-    task = _REGISTRY[name][1](config)
-    # Identifies what the task computes, for the trace cache (mjstamp.tracecache).
-    task.cache_key = f"task={name} config={json.dumps(config, sort_keys=True)}"
-    from mjstamp.solve import SolveConfig  # noqa: PLC0415 - solve imports the engine
-
-    # The task's own settings; `solve` accepts them beside its own and records them.
-    task.settings = {k: v for k, v in config.items() if k not in SolveConfig.fields()}
+    settings.update({k: v for k, v in overrides.items() if k in settings})
+    solve = {**entry.solve_config(), **{k: v for k, v in overrides.items() if k not in settings}}
+    config = SolveConfig.from_dict(solve)
+    task = entry.make(settings)
+    task.settings = dict(settings)
     return task, config
 
 
 __all__ = [
+    "Command",
     "Contact",
+    "Decoded",
+    "Entry",
+    "Kind",
+    "Option",
+    "Problem",
     "Rollout",
     "Task",
+    "Term",
     "Variable",
     "default_config",
+    "entries",
     "load",
     "names",
     "register",
+    "solve_config",
     "summaries",
 ]

@@ -39,7 +39,7 @@ POCKETS = {"top": "pocket_top", "bottom": "pocket_bottom"}
 
 
 def default_config() -> dict:
-    """Defaults of the billiards task and of its solve."""
+    """Settings of the billiards task."""
     return {
         "horizon": 150,
         "velocity_bound": 4.0,
@@ -50,7 +50,12 @@ def default_config() -> dict:
         "target_weight": 200.0,
         "aim_temperature": 0.2,
         "target_temperature": 0.02,
-        # solve
+    }
+
+
+def solve_config() -> dict:
+    """Settings of its solve (the rest are `SolveConfig`'s defaults)."""
+    return {
         "particles": 128,
         "svgd_learning_rate": 0.05,
         "sgd_learning_rate": 0.02,
@@ -61,12 +66,13 @@ def default_config() -> dict:
     }
 
 
-@register("billiards", default_config, "bank the cue ball off walls to pocket the target (Fig. 7)")
+@register("billiards", default_config,
+          "bank the cue ball off walls to pocket the target (Fig. 7)", solve_config=solve_config)
 def make(config: dict) -> Task:
-    """Builds the billiards task from a config (see `default_config`)."""
+    """Builds the billiards task from its settings (see `default_config`)."""
     scene = Scene.shipped("billiards")
     task = Task(
-        "billiards", scene, horizon=config["horizon"],
+        "billiards", scene, horizon=config["horizon"], settings=config,
         description="hit the target ball into a right-hand pocket; "
         "task plan = walls the cue ball touches before the target ball",
     )

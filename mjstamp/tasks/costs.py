@@ -88,29 +88,6 @@ def reach(
     return cost
 
 
-def control_effort():
-    """Mean squared control over the horizon, (1/T) Σ_t ‖u_t‖²."""
-
-    def cost(r):
-        ctrl = r.traj.get("ctrl")
-        if ctrl is None:
-            raise ValueError("control_effort needs the 'ctrl' rollout field")
-        return jnp.mean(jnp.sum(ctrl**2, axis=-1), axis=-1)
-
-    return cost
-
-
-def path_length(body: str):
-    """Length of a body's path, Σ_t ‖x_{t+1} − x_t‖ (smooth norm)."""
-
-    def cost(r):
-        x = r.body_pos(body)
-        step = jnp.diff(x, axis=1)
-        return jnp.sum(jnp.sqrt(jnp.sum(step**2, axis=-1) + 1e-12), axis=-1)
-
-    return cost
-
-
 def reaches(
     body: str, goals: Mapping[str, str], *, radius: float, axes: Sequence[int] = (0, 1)
 ):

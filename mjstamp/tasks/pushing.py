@@ -49,7 +49,7 @@ from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
 from mjstamp.scenes.scene import package_model_path
 from mjstamp.skills import pushing as skills
-from mjstamp.tasks import costs, register
+from mjstamp.tasks import Command, Option, costs, register
 from mjstamp.tasks.task import Task
 
 
@@ -72,7 +72,12 @@ def default_config() -> dict:
         "trajectory_weight": 5.0,
         "above_weight": 100.0,
         "skill_bank": "",  # "" = ~/.cache/mjstamp/skills/pushing.npz, refitted when stale
-        # solve
+    }
+
+
+def solve_config() -> dict:
+    """Settings of its solve (the rest are `SolveConfig`'s defaults)."""
+    return {
         "particles": 64,
         "svgd_learning_rate": 0.03,
         "sgd_learning_rate": 0.02,
@@ -81,6 +86,52 @@ def default_config() -> dict:
         "min_iters": 20,
         "jacobian": "rev",
     }
+
+
+def _skills_arguments(parser) -> None:
+    parser.add_argument("--out", metavar="FILE",
+                        help="bank file to write (default: the cache the pushing task reads)")
+    parser.add_argument("--json", action="store_true")
+    parser.add_argument("--quiet", action="store_true")
+
+
+def _skills_command(args) -> int:
+    """`mjstamp skills`: record the demonstrations, fit and save the skill bank."""
+    import json  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+    from pathlib import Path  # noqa: PLC0415
+
+    from mjstamp.skills import bank as bank_mod  # noqa: PLC0415
+
+    out = Path(args.out) if args.out else skills.DEFAULT_BANK
+    scene = Scene.shipped("pushing")
+    setup = skills.PushSetup.from_scene(scene)
+    say = (lambda msg: print(f"[skills] {msg}", file=sys.stderr)) if not args.quiet else None
+    demos = skills.record_all(scene, setup)
+    bank = skills.fit_bank(scene, setup, demos=demos, progress=say)
+    path = bank_mod.save(bank, out)
+    errors = skills.fit_errors(scene, setup, bank, demos=demos)
+    if args.json:
+        print(json.dumps({"path": str(path), "fingerprint": bank.fingerprint, "errors": errors}))
+        return 0
+    print(f"wrote {path} ({len(bank.skills)} skills, fingerprint {bank.fingerprint})")
+    for name, e in errors.items():
+        print(f"{name:<16} reproduces its demonstrations to {e['rms_rel']:.2%} RMS of their "
+              f"extent; end error {e['end_rel']:.2%}")
+    return 0
+
+
+def _positive_pushes(text: str) -> int:
+    k = int(text)
+    if k < 1:
+        raise MjstampError(f"--max-pushes={k} must be >= 1")
+    return k
+
+
+OPTIONS = (Option("--max-pushes", "max_pushes", _positive_pushes,
+                  "pushing: plan up to K pushes (same as --set max_pushes=K)", "K"),)
+COMMANDS = (Command("skills", "record the pushing demonstrations and fit the DMP skill bank",
+                    _skills_arguments, _skills_command),)
 
 
 def _scene(goal_x: float, goal_y: float) -> Scene:
@@ -201,7 +252,8 @@ def executed_sides(setup: skills.PushSetup, scene, *, pushes: int, min_travel: f
 
 
 @register("pushing", default_config,
-          "push a block into the goal region with up to K pushes (Fig. 8; --max-pushes K)")
+          "push a block into the goal region with up to K pushes (Fig. 8; --max-pushes K)",
+          solve_config=solve_config, options=OPTIONS, commands=COMMANDS)
 def make(config: dict) -> Task:
     """Builds the pushing task from a config (see `default_config`)."""
     K = int(config["max_pushes"])
@@ -227,7 +279,8 @@ def make(config: dict) -> Task:
     bank = skills.load_bank(scene, setup, config["skill_bank"] or None)
 
     task = Task(
-        "pushing", scene, horizon=setup.horizon(K),
+        "pushing", scene, horizon=setup.horizon(K), settings=config,
+        extras={"setup": setup, "bank": bank},
         description=f"push the block into the goal region with up to {K} pushes; "
         "task plan = the sides pushed, in order",
     )
@@ -270,6 +323,4 @@ def make(config: dict) -> Task:
     task.success(ends_in_goal_pushing_sides(sides))
     task.actions_from(sides)
     task.display(trace=("block", "pusher"), force=[("pusher", "block")])
-    task.setup = setup
-    task.bank = bank
     return task

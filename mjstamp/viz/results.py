@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from pathlib import Path
 
@@ -76,26 +75,11 @@ def load_results(path: str | os.PathLike, *, task: str | None = None) -> Results
         raise MjstampError(f"results directory {str(path)!r} does not exist")
     if not path.is_dir():
         raise MjstampError(f"{str(path)!r} is not a directory (expected a results directory)")
-    plans_json = path / "plans.json"
-    if not plans_json.is_file():
-        raise MjstampError(f"{str(path)!r} holds no plans.json (not a results directory)")
-    try:
-        header = json.loads(plans_json.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise MjstampError(f"{str(plans_json)!r} is not valid JSON: {e}") from None
-    version = header.get("schema_version") if isinstance(header, dict) else None
-    if version != plans_io.SCHEMA_VERSION:
-        rerun = f"mjstamp solve {header.get('task', 'TASK')} --out {path}" if isinstance(
-            header, dict) else "mjstamp solve TASK --out DIR"
-        raise MjstampError(
-            f"{str(plans_json)!r} has schema_version {version!r}; playback needs "
-            f"{plans_io.SCHEMA_VERSION} (re-run `{rerun}`)"
-        )
-    if task is not None and header.get("task") != task:
-        raise MjstampError(
-            f"{str(path)!r} holds plans of task {header.get('task')!r}, not {task!r}"
-        )
     summary, arrays = plans_io.load(path)
+    if task is not None and summary.get("task") != task:
+        raise MjstampError(
+            f"{str(path)!r} holds plans of task {summary.get('task')!r}, not {task!r}"
+        )
     if "trajectories" not in arrays:
         raise MjstampError(f"{str(path)!r} holds no trajectories.npz (not a results directory)")
     traj = arrays["trajectories"]

@@ -1,0 +1,147 @@
+"""Solve settings (`SolveConfig`): validated on construction, unknown keys an error.
+
+Kept apart from a task's own settings (`mjstamp.tasks`), as mujoco_playground
+keeps an environment's config apart from its training config. Imports nothing
+heavy, so the registry and the CLI can type and check settings up front.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import numbers
+from collections.abc import Mapping
+from typing import Any
+
+from mjstamp.errors import MjstampError, valid_list
+
+
+@dataclasses.dataclass(frozen=True)
+class SolveConfig:
+    """Settings of `solve`, validated on construction (unknown keys are an error).
+
+    Defaults are meant to work on a task nobody tuned: step sizes follow each
+    variable's box, iteration caps keep a solve to minutes, and the gradient
+    model is calibrated against the scene's own physics before STAMP starts.
+
+    Attributes:
+      particles: n >= 2 particles (candidate plans).
+      svgd_max_iters: cap on SVGD iterations (Algorithm 1 line 3-7).
+      sgd_max_iters: cap on SGD iterations (line 8-10).
+      min_iters: iterations each phase runs before the convergence test may end it.
+      window: W of the convergence test (`svgd.has_converged`).
+      rtol: its relative tolerance on the mean log posterior.
+      motion_tol: its bound on the mean displacement per iteration, in units
+        of θ; None: 1e-4 of the mean box width.
+      svgd_learning_rate: Adam step of the SVGD phase in units of θ (one
+        number for every coordinate); None: `svgd_step` of each coordinate's
+        box width.
+      sgd_learning_rate: likewise for the SGD phase; None: `sgd_step`.
+      svgd_step: SVGD step as a fraction of each coordinate's box width (when
+        `svgd_learning_rate` is None): 0.01, so 50 iterations can cross half
+        the box.
+      sgd_step: SGD step as a fraction of the box width: 0.003, finer, to
+        settle into narrow modes.
+      jacobian: 'auto', 'fwd' or 'rev' (see `svgd.StampConfig`).
+      calibrate: pick the gradient solver's iterations so the MJX rollouts
+        follow the scene's own physics (`scenes.fidelity.calibrate`).
+      fidelity_tolerance: divergence allowed to 95% of the particles, metres;
+        None: 1e-3 of the scene's size.
+      max_solver_iterations: calibration budget (solver iterations); None:
+        the MJCF's own `opt.iterations`.
+      allow_unfaithful: solve even when no setting within budget is faithful
+        (the result is then marked so).
+      repair: refine returned plans whose MuJoCo C replay fails, in C.
+      repair_rounds: rounds of the local search per plan.
+      repair_samples: candidates per plan and round.
+      screen: seed the particles from `screen · particles` candidates of the
+        prior replayed in MuJoCo C, spread over the task plans they reach
+        (`mjstamp.seeding`); 1 draws them from the prior directly.
+      keep_visited: a particle whose final state is not a verified plan, or
+        duplicates another's task plan, returns the plan it held at the end
+        of SVGD or at the start if that one was (no plan found is lost).
+    """
+
+    particles: int = 128
+    svgd_max_iters: int = 50
+    sgd_max_iters: int = 100
+    min_iters: int = 20
+    window: int = 25
+    rtol: float = 1e-3
+    motion_tol: float | None = None
+    svgd_learning_rate: float | None = None
+    sgd_learning_rate: float | None = None
+    svgd_step: float = 0.01
+    sgd_step: float = 0.003
+    jacobian: str = "auto"
+    calibrate: bool = True
+    fidelity_tolerance: float | None = None
+    max_solver_iterations: int | None = None
+    allow_unfaithful: bool = False
+    repair: bool = True
+    repair_rounds: int = 8
+    repair_samples: int = 32
+    screen: int = 16
+    keep_visited: bool = True
+
+    def __post_init__(self):
+        ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
+                "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
+                "repair_samples": 1, "screen": 1}
+        for name, low in ints.items():
+            value = getattr(self, name)
+            if value is None and name == "max_solver_iterations":
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise MjstampError(f"solve setting {name}={value!r} must be an integer >= {low}")
+        positive = ("svgd_step", "sgd_step", "rtol")
+        optional = ("motion_tol", "svgd_learning_rate", "sgd_learning_rate", "fidelity_tolerance")
+        for name in positive + optional:
+            value = getattr(self, name)
+            if value is None and name in optional:
+                continue
+            ok = not isinstance(value, bool) and isinstance(value, numbers.Real)
+            if not (ok and math.isfinite(value) and value > 0) and not (
+                name in ("rtol", "motion_tol") and ok and value == 0
+            ):
+                what = "a number > 0" + (" or None" if name in optional else "")
+                raise MjstampError(f"solve setting {name}={value!r} must be {what}")
+        for name in ("calibrate", "allow_unfaithful", "repair", "keep_visited"):
+            if not isinstance(getattr(self, name), bool):
+                raise MjstampError(
+                    f"solve setting {name}={getattr(self, name)!r} must be True or False"
+                )
+        if self.jacobian not in ("auto", "fwd", "rev"):
+            raise MjstampError(
+                f"solve setting jacobian={self.jacobian!r} is not valid; valid: auto, fwd, rev"
+            )
+
+    @classmethod
+    def fields(cls) -> list[str]:
+        """Names of the settings."""
+        return [f.name for f in dataclasses.fields(cls)]
+
+    @classmethod
+    def from_dict(cls, config: Mapping[str, Any] | None, *, ignore=()) -> SolveConfig:
+        """Builds a config from a dict; keys in `ignore` (a task's own settings) are skipped.
+
+        Raises:
+          MjstampError: a key that is neither a solve setting nor in `ignore`,
+            naming it, the closest valid key and every valid one.
+        """
+        config = dict(config or {})
+        valid = cls.fields()
+        for key in config:
+            if key in valid or key in ignore:
+                continue
+            close = difflib.get_close_matches(str(key), valid + list(ignore), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise MjstampError(
+                f"unknown solve setting {key!r}{hint}; valid: {valid_list(valid + sorted(ignore))}"
+            )
+        return cls(**{k: v for k, v in config.items() if k in valid})
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready view."""
+        return dataclasses.asdict(self)
