@@ -73,7 +73,7 @@ def test_notebook_is_committed_without_outputs(name):
 @pytest.mark.parametrize("name", NOTEBOOKS)
 def test_notebook_first_cell_configures_jax(name):
     first = next(c for c in _cells(name) if c["cell_type"] == "code")
-    assert "configure_jax()" in _code(first)
+    assert "mjstamp.configure()" in _code(first)
 
 
 def test_pytest_executes_the_notebooks():
