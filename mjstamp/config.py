@@ -61,6 +61,12 @@ class SolveConfig:
       keep_visited: a particle whose final state is not a verified plan, or
         duplicates another's task plan, returns the plan it held at the end
         of SVGD or at the start if that one was (no plan found is lost).
+      rescue_window: 0 (off, the default) or R >= 1: a particle that feels no
+        gradient and sits at or below the median log posterior for R
+        consecutive SVGD iterations is re-drawn from the prior
+        (`svgd.StampConfig.rescue_window`); the summary reports re-draws and
+        the task-plan counts of the initial and final particles. Off by
+        default: not yet measured on the scene suite.
     """
 
     particles: int = 128
@@ -84,11 +90,12 @@ class SolveConfig:
     repair_samples: int = 32
     screen: int = 16
     keep_visited: bool = True
+    rescue_window: int = 0
 
     def __post_init__(self):
         ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
                 "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
-                "repair_samples": 1, "screen": 1}
+                "repair_samples": 1, "screen": 1, "rescue_window": 0}
         for name, low in ints.items():
             value = getattr(self, name)
             if value is None and name == "max_solver_iterations":

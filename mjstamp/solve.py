@@ -100,6 +100,9 @@ class SolveResult:
       fidelity: the calibration (`Calibration.as_dict`) plus the divergence of
         MJX rollouts from their C replays, initial and final particles.
       screen: the seeding screen (`seeding.Screen.as_dict`) or None.
+      rescue: with `SolveConfig.rescue_window` on, the re-draws and the
+        task-plan counts (C replays) of the initial and final particles; None
+        when off.
     """
 
     problem: Problem
@@ -120,6 +123,7 @@ class SolveResult:
     fidelity: dict
     screen: dict | None
     source: np.ndarray
+    rescue: dict | None = None
 
     @property
     def task(self) -> Problem:
@@ -157,6 +161,7 @@ class SolveResult:
             "verified_codes": codes,
             "fidelity": self.fidelity,
             "screen": self.screen,
+            "rescue": self.rescue,
             "kept_from_earlier": {
                 name: int(((self.source == name) & ok).sum()) for name in ("svgd", "initial")
             },
@@ -322,7 +327,7 @@ def _stamp_config(cfg: SolveConfig, problem: Problem, seed: int) -> svgd.StampCo
         sgd_learning_rate=cfg.sgd_learning_rate or cfg.sgd_step,
         svgd_max_iters=cfg.svgd_max_iters, sgd_max_iters=cfg.sgd_max_iters,
         min_iters=cfg.min_iters, window=cfg.window, rtol=cfg.rtol, motion_tol=motion,
-        seed=seed, jacobian=cfg.jacobian,
+        seed=seed, jacobian=cfg.jacobian, rescue_window=cfg.rescue_window,
     )
 
 
@@ -397,6 +402,7 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress):
         sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
         progress=progress,
         jit=lambda step, state, key, phase: jit(step, f"stamp-{phase} {cfg}", state, key),
+        redraw=problem.init,
         **discrete,
     )
     jax.block_until_ready(result.particles)
@@ -466,6 +472,7 @@ def solve(
                              repaired),
         timings=_timings(clock), fidelity=report,
         screen=None if screen is None else screen.as_dict(), source=source,
+        rescue=_rescue_report(problem, cfg, stamp, theta0_np, outcome),
     )
 
 
@@ -491,6 +498,25 @@ def _repair(problem, cfg, theta, returned, outcome, evaluate, seed, say):
         repaired[failed[fix.repaired]] = True
         outcome = evaluate(theta)
     return theta, repaired, outcome
+
+
+def _plan_counts(decoded: plans_mod.Decoded) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for ok, plan in zip(decoded.ok, decoded.plan, strict=True):
+        key = plan if ok else "(no plan)"
+        counts[key] = counts.get(key, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def _rescue_report(problem, cfg: SolveConfig, stamp, theta0: np.ndarray, outcome) -> dict | None:
+    """Re-draws of the stall rescue and the task plans (C) before and after; None when off."""
+    if not cfg.rescue_window:
+        return None
+    initial = problem.decode(plans_mod.simulate_c(problem, theta0), theta0)
+    return {"window": cfg.rescue_window, "redraws": int(stamp.rescued.sum()),
+            "particles_redrawn": int((stamp.rescued > 0).sum()),
+            "task_plan_counts": {"initial": _plan_counts(initial),
+                                 "final": _plan_counts(outcome.verified)}}
 
 
 def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int) -> dict:

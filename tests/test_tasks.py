@@ -114,10 +114,13 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task):
 
     task = tiny_task()
     config = {"particles": 8, "svgd_max_iters": 15, "sgd_max_iters": 15, "min_iters": 5,
-              "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05}
+              "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05, "rescue_window": 3}
     result = solve(task, config, seed=0, progress=False)
     summary = result.summary()
     assert summary["particles"] == 8 and summary["task"] == "tiny"
+    rescue = summary["rescue"]  # the stall rescue's report: re-draws, task plans before/after
+    assert rescue["redraws"] == int(result.stamp.rescued.sum())
+    assert [sum(c.values()) for c in rescue["task_plan_counts"].values()] == [8, 8]
     assert result.theta.shape == (8, 2)
     # Reaching the goal pays: the mean cost fell over the run.
     d = result.diagnostics

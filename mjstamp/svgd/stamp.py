@@ -98,6 +98,12 @@ class StampConfig:
         `initial_particles`; the same seed gives the same run.
       jacobian: 'auto', 'fwd' or 'rev': how the SVGD step differentiates a log
         density that also returns kernel features.
+      rescue_window: 0 (off) or R >= 1: in the SVGD phase, a particle that has
+        stalled for R consecutive iterations is re-drawn by `run_stamp`'s
+        `redraw` (and its optimizer moments zeroed). Stalled: its score norm is
+        at most the phase's near-zero threshold (`near_zero_threshold`: it
+        feels no gradient) and its log density is at most the population's
+        median (it is not resting in a good mode), or either is not finite.
     """
 
     svgd_learning_rate: float | Schedule = 1e-2
@@ -110,6 +116,7 @@ class StampConfig:
     motion_tol: float = 1e-3
     seed: int = 0
     jacobian: JacobianMode = "auto"
+    rescue_window: int = 0
 
     def __post_init__(self):
         """Validates every field (ValueError naming the field and its range)."""
@@ -134,6 +141,7 @@ class StampConfig:
             ):
                 raise ValueError(f"{name} must be a float >= 0; got {value!r}")
         _count(self.seed, "seed", 0)
+        _count(self.rescue_window, "rescue_window", 0)
         check_mode(self.jacobian, "jacobian")
 
 
@@ -175,6 +183,7 @@ class StampDiagnostics(NamedTuple):
         the share of a particle's own score in its driving term: near 1/n the
         kernel averages every particle's score, so a particle in a narrow valley
         follows the crowd rather than its valley; NaN in SGD.
+      rescued: (T,) particles re-drawn after the iteration (`rescue_window`).
     """
 
     logdensity_mean: np.ndarray
@@ -195,6 +204,7 @@ class StampDiagnostics(NamedTuple):
     near_zero_share: np.ndarray
     near_zero_threshold: np.ndarray
     self_weight_median: np.ndarray
+    rescued: np.ndarray
 
 
 class StampResult(NamedTuple):
@@ -208,6 +218,7 @@ class StampResult(NamedTuple):
       sgd_iters: SGD iterations run.
       svgd_converged: True if the SVGD phase ended by the convergence test.
       sgd_converged: True if the SGD phase ended by the convergence test.
+      rescued: (n,) times each particle was re-drawn (`rescue_window`).
     """
 
     particles: jax.Array
@@ -217,6 +228,7 @@ class StampResult(NamedTuple):
     sgd_iters: int
     svgd_converged: bool
     sgd_converged: bool
+    rescued: np.ndarray
 
 
 def has_converged(
@@ -291,6 +303,7 @@ class IterationRecord(NamedTuple):
     near_zero_share: Any
     near_zero_threshold: Any
     self_weight_median: Any
+    rescued: Any
 
 
 # N.B. over 80 lines: 36 of them the docstring; the loop itself is `_Loop`.
@@ -306,6 +319,7 @@ def run_stamp(
     sgd_optimizer: optax.GradientTransformation | None = None,
     progress: bool | None = None,
     jit: Callable[[Callable, Any, jax.Array, str], Callable] | None = None,
+    redraw: Callable[[jax.Array, int], jax.Array] | None = None,
 ) -> StampResult:
     """Runs STAMP: (discrete) SVGD until converged, then SGD until converged.
 
@@ -332,6 +346,9 @@ def run_stamp(
       jit: how each phase's step is compiled, jit(step, example_state,
         example_key, phase_name) -> compiled step; default `jax.jit`. A task
         passes `mjstamp.tracecache.cached_jit` here so a re-run skips tracing.
+      redraw: redraw(key, k) -> (k, d) fresh particles for the stalled ones
+        (`config.rescue_window`), e.g. draws from the prior; required when
+        rescue is on.
 
     Returns:
       `StampResult`.
@@ -353,6 +370,8 @@ def run_stamp(
         initial_particles = initial_particles(sub)
     particles = jnp.asarray(initial_particles)
     check_particles(particles)
+    if config.rescue_window and redraw is None:
+        raise ValueError("config.rescue_window > 0 needs redraw(key, k), the particles' source")
 
     (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer) = _phase_steps(
         logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
@@ -361,7 +380,7 @@ def run_stamp(
     tty = sys.stderr.isatty()
     show = tty if progress is None else bool(progress)
     loop = _Loop(key, config, jit, n=particles.shape[0], show=show,
-                 lines=progress is None and not tty)
+                 lines=progress is None and not tty, redraw=redraw)
     with loop.bar:  # closed on the way out, also when a phase raises
         svgd, svgd_converged = loop.run_phase(
             PHASE_SVGD, svgd_step, init(particles, svgd_optimizer), config.svgd_max_iters
@@ -377,6 +396,7 @@ def run_stamp(
         diagnostics=_assemble(loop.rows, particles.shape[1]), svgd_iters=svgd_iters,
         sgd_iters=len(loop.rows) - svgd_iters,
         svgd_converged=svgd_converged, sgd_converged=sgd_converged,
+        rescued=loop.rescue.counts,
     )  # fmt: skip
 
 
@@ -402,9 +422,11 @@ class _Loop:
     """The Python loop of `run_stamp`: one PRNG key and one list of records across phases."""
 
     def __init__(
-        self, key: jax.Array, config: StampConfig, jit, *, n: int, show: bool, lines: bool
+        self, key: jax.Array, config: StampConfig, jit, *, n: int, show: bool, lines: bool,
+        redraw=None,
     ):
         self.key = key
+        self.rescue = _Rescue(config.rescue_window, redraw, n)
         self.config = config
         self.jit = jit
         self.n = n
@@ -443,6 +465,12 @@ class _Loop:
                 near_zero_share=float(near_zero_share(score_norm, threshold, xp=np)),
                 near_zero_threshold=threshold,
             )
+            if phase == PHASE_SVGD and self.rescue.window:
+                self.key, sub = jax.random.split(self.key)
+                state, k = self.rescue(state, info, score_norm, threshold, sub)
+                row = row._replace(rescued=k)
+                if k:
+                    self.say(f"{name.upper()} {t}: {k} stalled particles re-drawn")
             if not self.rows and int(row.n_nonfinite) == self.n:
                 raise ValueError(
                     f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {self.n} "
@@ -467,6 +495,44 @@ class _Loop:
             ):
                 return state, True
         return state, False
+
+
+class _Rescue:
+    """Counts each particle's consecutive stalled iterations; re-draws those stalled R times."""
+
+    def __init__(self, window: int, redraw, n: int):
+        self.window = window
+        self.redraw = redraw
+        self.stalled = np.zeros(n, dtype=int)
+        self.counts = np.zeros(n, dtype=int)
+
+    def __call__(self, state, info: StepInfo, score_norm, threshold: float, key):
+        """(state with the particles stalled `window` times re-drawn, how many)."""
+        logp = np.asarray(jax.device_get(info.logdensity), dtype=float)
+        finite = np.isfinite(logp)
+        median = float(np.median(logp[finite])) if finite.any() else math.inf
+        flat = ~(score_norm > threshold)  # NaN counts as no gradient
+        low = ~(logp > median)
+        self.stalled = np.where(flat & low, self.stalled + 1, 0)
+        idx = np.flatnonzero(self.stalled >= self.window)
+        if idx.size == 0:
+            return state, 0
+        particles = state.particles
+        fresh = jnp.asarray(self.redraw(key, int(idx.size)), particles.dtype)
+        if fresh.shape != (idx.size, particles.shape[1]):
+            raise ValueError(f"redraw(key, {idx.size}) returned shape {fresh.shape}; "
+                             f"expected ({idx.size}, {particles.shape[1]})")
+
+        def reset(leaf):  # Adam's moments of a re-drawn particle start from zero
+            if hasattr(leaf, "shape") and leaf.shape == particles.shape:
+                return leaf.at[idx].set(0)
+            return leaf
+
+        state = state._replace(particles=particles.at[idx].set(fresh),
+                               opt_state=jax.tree.map(reset, state.opt_state))
+        self.stalled[idx] = 0
+        self.counts[idx] += 1
+        return state, int(idx.size)
 
 
 def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
@@ -497,6 +563,7 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
                 near_zero_share=None,
                 near_zero_threshold=None,
                 self_weight_median=info.self_weight_median,
+                rescued=0,
             ),
             info.score_norm,
         )
@@ -508,7 +575,7 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
 
 # dtype of each StampDiagnostics column; bandwidth is stacked apart (its width g may differ
 # between phases: SGD has none), and so is displacement_per_coordinate (its width is d).
-_COLUMN_DTYPES = {"phase": np.int8, "n_nonfinite": int}
+_COLUMN_DTYPES = {"phase": np.int8, "n_nonfinite": int, "rescued": int}
 _WIDE = ("bandwidth", "displacement_per_coordinate")
 
 
