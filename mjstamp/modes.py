@@ -94,8 +94,14 @@ def _count_plans(task, theta: np.ndarray, *, chunk: int, progress: bool | None, 
     found: Counter = Counter()
     codes: dict[str, str] = {}
     ok_total = 0
-    show = sys.stderr.isatty() if progress is None else progress
-    for start in tqdm(range(0, len(theta), chunk), desc=desc, unit="chunk", disable=not show):
+    tty = sys.stderr.isatty()
+    show = tty if progress is None else progress
+    starts = range(0, len(theta), chunk)
+    every = max(1, len(starts) // 10)
+    for i, start in enumerate(tqdm(starts, desc=desc, unit="chunk", disable=not show)):
+        if progress is None and not tty and (i % every == 0):  # a log sees lines, not a bar
+            print(f"[modes] {desc}: {start}/{len(theta)} shots replayed in MuJoCo C",
+                  file=sys.stderr, flush=True)
         part = theta[start : start + chunk]
         decoded = plans_mod.decode(task, plans_mod.simulate_c(task, part), part)
         ok_total += int(decoded.ok.sum())
@@ -122,7 +128,7 @@ def sweep(task, *, grid: int = 200, chunk: int = 4096, progress: bool | None = N
       task: a `Task` whose variables are boxes (see `supports_sweep`).
       grid: points per coordinate (grid**dim shots).
       chunk: shots per batch.
-      progress: tqdm bar; None shows it on a terminal.
+      progress: tqdm bar; None shows it on a terminal, status lines otherwise.
       cache: read and write the on-disk cache.
       salt: extra cache key for what `task.describe()` cannot see.
 
@@ -182,7 +188,7 @@ def monte_carlo(task, *, shots: int = 100_000, seed: int = 0, chunk: int = 2048,
       shots: number of draws N.
       seed: seeds the draws.
       chunk: shots per batch (memory: a chunk's replay holds chunk·T poses).
-      progress: tqdm bar; None shows it on a terminal.
+      progress: tqdm bar; None shows it on a terminal, status lines otherwise.
       cache: read and write the on-disk cache.
       salt: extra cache key for what `task.describe()` cannot see.
 

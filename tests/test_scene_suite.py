@@ -166,6 +166,13 @@ def test_monte_carlo_counts_and_is_seeded(tasks):
     assert cov["coverage"] == pytest.approx(1 / len(a["modes"])) and cov["method"] == "uniform"
 
 
+def test_ground_truth_prints_lines_without_a_terminal(tasks, capsys):
+    """A sweep written to a log says how far it is (the default progress, no TTY)."""
+    modes.monte_carlo(tasks["pendulum_bells"], shots=60, seed=0, chunk=20, cache=False)
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("[modes]")]
+    assert len(lines) == 3 and "40/60 shots replayed" in lines[-1]
+
+
 def test_random_search_stops_in_its_wall_time(tasks):
     """random_search counts only shots that finished within the budget."""
     task = tasks["pendulum_bells"]
