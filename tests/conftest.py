@@ -13,8 +13,8 @@ import mjstamp
 mjstamp.configure(precision="float64")
 
 # A puck on a plane table with one wall and a goal site: small enough that its
-# rollouts compile in seconds. Tests vary the wall's turn, the goal's size and
-# the success radius through `tiny_task`.
+# rollouts compile in seconds. Tests vary the wall's turn, the goal's place and
+# size and the success radius through `tiny_task` (the MJCF alone: `tiny_xml`).
 TINY = """
 <mujoco model="tiny">
   <option timestep="0.02" gravity="0 0 0"/>
@@ -22,7 +22,7 @@ TINY = """
   <worldbody>
     <geom name="floor" type="plane" size="1 1 0.1" pos="0 0 -0.05" contype="0" conaffinity="0"/>
     <geom name="wall" type="box" pos="0.5 0 0" size="0.05 1 0.05" euler="0 0 {turn}"/>
-    <site name="goal" pos="-0.3 0.3 0" size="{goal_size}" rgba="0 0.8 0 1"/>
+    <site name="goal" pos="{goal_pos}" size="{goal_size}" rgba="0 0.8 0 1"/>
     <body name="puck">
       <joint name="px" type="slide" axis="1 0 0" damping="0.05"/>
       <joint name="py" type="slide" axis="0 1 0" damping="0.05"/>
@@ -33,18 +33,30 @@ TINY = """
 """
 
 
-def make_tiny_task(*, horizon=40, turn=0.0, goal_size=0.02, radius=0.1, weight=50.0):
+def tiny_mjcf(*, turn=0.0, goal_size=0.02, goal_pos="-0.3 0.3 0") -> str:
+    """The tiny scene's MJCF."""
+    return TINY.format(turn=turn, goal_size=goal_size, goal_pos=goal_pos)
+
+
+def make_tiny_task(*, horizon=40, turn=0.0, goal_size=0.02, goal_pos="-0.3 0.3 0", radius=0.1,
+                   weight=50.0):
     """The tiny task: θ = the puck's velocity; symbol: the wall; goal: the site."""
     from mjstamp.scenes import Scene
     from mjstamp.tasks import Task, costs
 
-    scene = Scene(TINY.format(turn=turn, goal_size=goal_size), name="tiny")
+    scene = Scene(tiny_mjcf(turn=turn, goal_size=goal_size, goal_pos=goal_pos), name="tiny")
     task = Task("tiny", scene, horizon=horizon)
     task.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
     task.contact("wall", "puck", "wall")
     task.cost("goal", costs.reach("puck", ["goal"]), weight=weight)
     task.success(costs.reaches("puck", {"goal": "goal"}, radius=radius))
     return task
+
+
+@pytest.fixture(scope="session")
+def tiny_xml():
+    """`tiny_mjcf`, the tiny scene's MJCF (a factory)."""
+    return tiny_mjcf
 
 
 @pytest.fixture(scope="session")

@@ -11,29 +11,14 @@ from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
 from mjstamp.tasks import Task, costs
 
-TINY = """
-<mujoco model="tiny">
-  <option timestep="0.02" gravity="0 0 0"/>
-  <worldbody>
-    <geom name="floor" type="plane" size="1 1 0.1" pos="0 0 -0.05" contype="0" conaffinity="0"/>
-    <geom name="wall" type="box" pos="0.5 0 0" size="0.05 1 0.05"/>
-    <site name="goal" pos="-0.3 0.3 0" size="0.02"/>
-    <body name="puck">
-      <joint name="px" type="slide" axis="1 0 0" damping="0.05"/>
-      <joint name="py" type="slide" axis="0 1 0" damping="0.05"/>
-      <geom name="puck" type="sphere" size="0.04" mass="0.2"/>
-    </body>
-  </worldbody>
-</mujoco>
-"""  # names only (declaration errors); solves use the conftest's `tiny_task`
 
-
-def test_declaration_errors_name_the_culprit():
-    task = Task("tiny", Scene(TINY, name="tiny"), horizon=10)
+def test_declaration_errors_name_the_culprit(tiny_xml):
+    xml = tiny_xml()
+    task = Task("tiny", Scene(xml, name="tiny"), horizon=10)
     with pytest.raises(MjstampError, match="unknown geom 'nope'.*valid: floor, wall, puck"):
         task.contact("c", "puck", "nope")
     with pytest.raises(MjstampError, match="'plane'.*'floor'.*'plane'|plane.*plane"):
-        Task("t", Scene(TINY.replace('type="box"', 'type="plane"')), horizon=5).contact(
+        Task("t", Scene(xml.replace('type="box"', 'type="plane"')), horizon=5).contact(
             "c", "floor", "wall")
     with pytest.raises(MjstampError, match=r"low < high.*low=\[1.0\], high=\[0.0\]"):
         task.box("b", low=[1], high=[0])
