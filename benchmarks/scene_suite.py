@@ -246,7 +246,7 @@ def main() -> None:
     if args.particles < 2:
         raise SystemExit(f"--particles={args.particles} must be >= 2")
     overrides = _parse_set(args.set)
-    progress = False if args.json else None
+    progress = None  # status lines on stderr; --json writes only stdout
     rows = []
     t0 = time.perf_counter()
     for name in names:
