@@ -384,7 +384,7 @@ def run_scene(name, *, options, particles, repeats, seed, fd_eps, say):
     say(f"{name}: C replay and central differences (eps {fd_eps:g}, {fd_eps * 10:g})")
     ref = replay(scene, *_inputs(scene, case, theta, np), horizon=case.horizon,
                  fields=("qpos",), solver="scene")["qpos"]
-    x_ref = fidelity.body_positions(scene.m, ref)
+    x_ref = fidelity.tracked_points(scene.m, ref)
     fd = _finite_differences(scene, case, theta, c1, c2, fd_eps)
     # How far apart two step sizes put the FD itself: the floor of any comparison.
     fd_floor = _relative_errors(_finite_differences(scene, case, theta, c1, c2, 10 * fd_eps), fd)
@@ -399,7 +399,7 @@ def run_scene(name, *, options, particles, repeats, seed, fd_eps, say):
         qpos_of[option[0]] = qpos
         finite = np.isfinite(grad).all(axis=1)
         rel = _relative_errors(grad, fd)
-        div = fidelity.divergence(fidelity.body_positions(scene.m, qpos), x_ref)
+        div = fidelity.divergence(fidelity.tracked_points(scene.m, qpos), x_ref)
         row.update({
             "nonfinite": int((~finite).sum()),
             "rel_err_median": float(np.median(rel)),

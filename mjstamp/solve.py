@@ -315,8 +315,8 @@ def mjx_divergence(problem: Problem, theta: np.ndarray, qpos_mjx: np.ndarray) ->
     """(n,) divergence of MJX rollouts (n, T, nq) of θ from their C replays (own solver)."""
     qpos_c = plans_mod.simulate_c(problem, theta).qpos
     m = problem.scene.m
-    return fidelity.divergence(fidelity.body_positions(m, qpos_mjx),
-                               fidelity.body_positions(m, qpos_c))
+    return fidelity.divergence(fidelity.tracked_points(m, qpos_mjx),
+                               fidelity.tracked_points(m, qpos_c))
 
 
 def _stamp_config(cfg: SolveConfig, problem: Problem, seed: int) -> svgd.StampConfig:

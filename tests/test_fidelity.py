@@ -174,3 +174,19 @@ def test_implicit_forward_values_are_the_converged_solvers():
         Scene(SLIDE, gradient="implicit", solver="cg")
     with pytest.raises(MjstampError, match="gradient='exact' is not valid; valid: unrolled"):
         Scene(SLIDE, gradient="exact")
+
+
+def test_divergence_sees_a_body_that_swings_about_its_own_origin():
+    """A pendulum hinged at its body's origin: the origin stays put, its rod does not."""
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_string("""
+    <mujoco><worldbody><body name="arm" pos="0 0 1">
+      <joint name="hinge" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02"/>
+    </body></worldbody></mujoco>""")
+    rest, swung = np.zeros((1, 1, 1)), np.full((1, 1, 1), 0.5)
+    div = fidelity.divergence(fidelity.tracked_points(m, swung), fidelity.tracked_points(m, rest))
+    # The capsule's centre (and the COM), 0.25 m below the hinge, moves by
+    # 0.25·(sin 0.5, 0, 1 − cos 0.5); the divergence is the largest coordinate.
+    np.testing.assert_allclose(div, 0.25 * np.sin(0.5), rtol=1e-9)

@@ -5,7 +5,7 @@ and measures the gradient model (MJX with the scene's `GradOptions`) against
 the scene's *own* physics, MuJoCo C with the MJCF's solver settings, which is
 what plans are verified with:
 
-* physics divergence: the largest body-position difference over the horizon
+* physics divergence: the largest difference of a body COM or geom centre over the horizon
   between the MJX rollout and the C replay of the same inputs
   (`scenes.fidelity`); faithful when 95% of the particles stay within the
   tolerance;
@@ -222,8 +222,8 @@ def check(
     rollout = scene.rollout_fn(draws.horizon, fields=("qpos",))
     inputs = tuple(np.asarray(a, np.float64) for a in draws.to_inputs(theta, np))
     div = fidelity.divergence(
-        fidelity.body_positions(scene.m, np.asarray(rollout(*inputs)["qpos"], np.float64)),
-        fidelity.body_positions(scene.m, replay(scene, *inputs, solver="scene")["qpos"]),
+        fidelity.tracked_points(scene.m, np.asarray(rollout(*inputs)["qpos"], np.float64)),
+        fidelity.tracked_points(scene.m, replay(scene, *inputs, solver="scene")["qpos"]),
     )
     grads = _gradients(scene, draws, rollout, theta, c1, c2, say)
     rel = {}

@@ -7,8 +7,9 @@ converges: one Newton iteration is exact for soft frictionless contacts (the
 shipped billiards table, 1e-10 m) but on a frictional scene with MuJoCo's
 default contacts it drifts by centimetres within a second.
 
-Divergence of one particle = the largest difference of any body position
-(`xpos`, metres) over the horizon between the two models, started from the same
+Divergence of one particle = the largest difference of any body's centre of
+mass or geom's centre (`tracked_points`, metres) over the horizon between the
+two models, started from the same
 state with the same controls. A model is *faithful* when that divergence is
 under the tolerance for `share` (95%) of the particles. The default tolerance
 is 1e-3 of the scene's size (`Scene.length_scale`: 2.5 mm on a 2.2 m table):
@@ -63,25 +64,31 @@ def default_tolerance(scene) -> float:
     return RELATIVE_TOLERANCE * scene.length_scale
 
 
-def body_positions(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
-    """(n, T, nbody, 3) body positions of states (n, T, nq), by MuJoCo C kinematics."""
+def tracked_points(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
+    """(n, T, nbody + ngeom, 3) points of states (n, T, nq): body COMs and geom centres.
+
+    By MuJoCo C kinematics. N.B. not body frame origins (`xpos`): a body hinged
+    at its own origin (a pendulum, a link of an arm) keeps its origin still
+    however it swings, and a divergence read from origins alone is 0 there.
+    """
     n, T = qpos.shape[:2]
     d = mujoco.MjData(m)
-    out = np.empty((n, T, m.nbody, 3))
+    out = np.empty((n, T, m.nbody + m.ngeom, 3))
     for i in range(n):
         for t in range(T):
             d.qpos[:] = qpos[i, t]
             mujoco.mj_kinematics(m, d)
-            out[i, t] = d.xpos
+            out[i, t, : m.nbody] = d.xipos
+            out[i, t, m.nbody :] = d.geom_xpos
     return out
 
 
 def divergence(x_a: np.ndarray, x_b: np.ndarray) -> np.ndarray:
-    """(n,) largest body-position difference over steps and bodies, in metres.
+    """(n,) largest difference of tracked points over steps and points, in metres.
 
     Args:
-      x_a: (n, T, nbody, 3) body positions of one rollout.
-      x_b: (n, T, nbody, 3) those of another rollout of the same inputs.
+      x_a: (n, T, p, 3) points of one rollout (`tracked_points`).
+      x_b: (n, T, p, 3) those of another rollout of the same inputs.
     """
     diff = np.abs(np.asarray(x_a) - np.asarray(x_b)).max(axis=(1, 2, 3))
     # N.B. a non-finite state is infinitely far from any finite one.
@@ -213,7 +220,7 @@ def _key(scene, inputs, tolerance, candidates) -> str:
     h = hashlib.sha256(model_bytes(scene.m))
     h.update(json.dumps(
         {"grad": dataclasses.asdict(scene.grad_options), "tol": tolerance,
-         "candidates": list(candidates), "share": SHARE, "v": 2}, sort_keys=True,
+         "candidates": list(candidates), "share": SHARE, "v": 3}, sort_keys=True,
     ).encode())
     for a in inputs:
         h.update(np.ascontiguousarray(np.asarray(a, np.float64)).tobytes())
@@ -284,7 +291,7 @@ def calibrate(
             pass  # a corrupt entry is measured again and rewritten
     started = time.perf_counter()
     reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
-    x_ref = body_positions(scene.m, reference)
+    x_ref = tracked_points(scene.m, reference)
     tried: list[Measurement] = []
     for gradient, iterations, ls in todo:
         candidate = scene.with_grad_options(
@@ -293,7 +300,7 @@ def calibrate(
         t0 = time.perf_counter()
         qpos = replay(candidate, qpos0, qvel0, ctrl, fields=("qpos",), solver="grad")["qpos"]
         seconds = time.perf_counter() - t0
-        diff = divergence(body_positions(scene.m, qpos), x_ref)
+        diff = divergence(tracked_points(scene.m, qpos), x_ref)
         tried.append(Measurement(gradient, iterations, ls, *_stats(diff), seconds))
         say(f"{describe(gradient, iterations)}, line search {ls}: divergence p95 "
             f"{tried[-1].p95_m:.2g} m (tolerance {tolerance:.2g} m)")
