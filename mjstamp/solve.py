@@ -520,7 +520,9 @@ def _rescue_report(problem, cfg: SolveConfig, stamp, theta0: np.ndarray, outcome
 
 
 def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int) -> dict:
-    divergence = fidelity.divergence(outcome.mjx_replay.xpos, outcome.replay.xpos)
+    m = problem.scene.m
+    divergence = fidelity.divergence(fidelity.tracked_points(m, outcome.mjx_replay.qpos),
+                                     fidelity.tracked_points(m, outcome.replay.qpos))
     p95 = float(np.percentile(divergence, 95))
     return {
         "gradient": problem.scene.grad_options.gradient,
