@@ -535,6 +535,9 @@ class _Rescue:
         return state, int(idx.size)
 
 
+_FROM_STEP = tuple(f for f in IterationRecord._fields if f in StepInfo._fields)
+
+
 def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
     """The iteration's record and its (n,) score norms, on the host (waits for the step).
 
@@ -542,32 +545,13 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
     N.B. everything derived from the (n,) score norms is computed here in numpy: a
     jnp call outside the step would be one more dispatch per iteration.
     """
-    record, score_norm = jax.device_get(
-        (
-            IterationRecord(
-                logdensity_mean=info.logdensity_mean,
-                logdensity_max=info.logdensity_max,
-                bandwidth=info.bandwidth,
-                phase=phase,
-                learning_rate=info.learning_rate,
-                displacement=info.displacement,
-                n_nonfinite=info.n_nonfinite,
-                step_seconds=None,
-                driving_norm_mean=info.driving_norm_mean,
-                driving_norm_median=info.driving_norm_median,
-                repulsion_norm_mean=info.repulsion_norm_mean,
-                repulsion_norm_median=info.repulsion_norm_median,
-                score_norm_median=None,
-                direction_norm_mean=info.direction_norm_mean,
-                displacement_per_coordinate=info.displacement_per_coordinate,
-                near_zero_share=None,
-                near_zero_threshold=None,
-                self_weight_median=info.self_weight_median,
-                rescued=0,
-            ),
-            info.score_norm,
-        )
-    )
+    # N.B. the fields a StepInfo carries are copied by name; the rest the loop fills.
+    copied = {name: getattr(info, name) for name in _FROM_STEP}
+    record, score_norm = jax.device_get((
+        IterationRecord(**{**dict.fromkeys(IterationRecord._fields), **copied})._replace(
+            phase=phase, rescued=0),
+        info.score_norm,
+    ))
     finite = score_norm[np.isfinite(score_norm)]
     median = float(np.median(finite)) if finite.size else math.nan
     return record._replace(score_norm_median=median), score_norm
