@@ -67,6 +67,10 @@ class SolveConfig:
         (`svgd.StampConfig.rescue_window`); the summary reports re-draws and
         the task-plan counts of the initial and final particles. Off by
         default: not yet measured on the scene suite.
+      nonfinite_redraw: a particle whose log posterior, score or features are
+        not finite is frozen for the iteration and left out of the kernel of
+        the others; after this many such iterations in a row (>= 1; 0: never)
+        it is re-drawn from the prior (`svgd.StampConfig.nonfinite_redraw`).
     """
 
     particles: int = 128
@@ -91,11 +95,13 @@ class SolveConfig:
     screen: int = 16
     keep_visited: bool = True
     rescue_window: int = 0
+    nonfinite_redraw: int = 3
 
     def __post_init__(self):
         ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
                 "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
-                "repair_samples": 1, "screen": 1, "rescue_window": 0}
+                "repair_samples": 1, "screen": 1, "rescue_window": 0,
+                "nonfinite_redraw": 0}
         for name, low in ints.items():
             value = getattr(self, name)
             if value is None and name == "max_solver_iterations":

@@ -177,6 +177,7 @@ class SolveResult:
                 "sgd_iters": self.stamp.sgd_iters,
                 "svgd_converged": self.stamp.svgd_converged,
                 "sgd_converged": self.stamp.sgd_converged,
+                "nonfinite_particles": _nonfinite_report(self.stamp),
             },
             "config": self.config,
             "declaration": self.problem.describe(),
@@ -261,6 +262,14 @@ def _iteration_seconds(d: svgd.StampDiagnostics) -> dict[str, float | None]:
     return out
 
 
+def _nonfinite_report(stamp: svgd.StampResult) -> dict[str, int]:
+    """How many particles went non-finite: per iteration at most, iterations hit, re-draws."""
+    counts = stamp.diagnostics.nonfinite_particles
+    return {"max_per_iteration": int(counts.max(initial=0)),
+            "iterations_with_any": int((counts > 0).sum()),
+            "redrawn": int(stamp.nonfinite_redrawn.sum())}
+
+
 def problem_jit(problem: Problem):
     """`jit(fn, name, *example) -> compiled fn` through the trace cache, keyed by `problem`.
 
@@ -328,6 +337,7 @@ def _stamp_config(cfg: SolveConfig, problem: Problem, seed: int) -> svgd.StampCo
         svgd_max_iters=cfg.svgd_max_iters, sgd_max_iters=cfg.sgd_max_iters,
         min_iters=cfg.min_iters, window=cfg.window, rtol=cfg.rtol, motion_tol=motion,
         seed=seed, jacobian=cfg.jacobian, rescue_window=cfg.rescue_window,
+        nonfinite_redraw=cfg.nonfinite_redraw,
     )
 
 

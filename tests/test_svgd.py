@@ -228,7 +228,7 @@ def test_nonfinite_particles_get_zero_weight_and_do_not_poison_others():
         init(x0, optimizer), KEY
     )
     assert np.all(np.isfinite(state.particles))
-    assert int(info.n_nonfinite) == 1 and float(info.weights[0]) == 0.0
+    assert int(info.nonfinite_particles) == 1 and float(info.weights[0]) == 0.0
     np.testing.assert_allclose(
         float(info.logdensity_mean), float(jnp.mean(logp(x0)[1:])), rtol=1e-6
     )

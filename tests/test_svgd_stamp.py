@@ -72,7 +72,7 @@ def test_diagnostics_record_every_iteration_and_phase(result):
     np.testing.assert_allclose(diag.learning_rate, 0.05, rtol=1e-6)
     assert np.all(diag.logdensity_max >= diag.logdensity_mean)
     assert diag.logdensity_mean[-1] > diag.logdensity_mean[0] + 5
-    assert np.all(diag.n_nonfinite == 0)
+    assert np.all(diag.nonfinite_particles == 0)
     # The switch happened because the test passed on the recorded history.
     assert has_converged(
         diag.logdensity_mean[:t_svgd],

@@ -182,20 +182,31 @@ def _sqdist(z: jax.Array) -> jax.Array:
     return d2 * (1.0 - jnp.eye(z.shape[0], dtype=z.dtype))
 
 
-def _median_pairwise_distance(d2: jax.Array) -> jax.Array:
+def _median_pairwise_distance(d2: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     """median_{i<j} √d2_ij, exactly, from a symmetric (n, n) d2 with zero diagonal.
+
+    With `valid` ((n,) bool), only pairs of valid particles count.
 
     Sorting the n(n−1)/2 distances costs ~180 ms per step at n = 1000 on a CPU;
     this bisects on the bit patterns of d2 instead (non-negative floats order
     like their bits): one counting pass over d2 per bit, ~8x faster.
     """
     n = d2.shape[0]
-    m = n * (n - 1) // 2
     itype = {4: jnp.int32, 8: jnp.int64}[d2.dtype.itemsize]
     bits = jax.lax.bitcast_convert_type(d2, itype)
+    if valid is None:
+        m = n * (n - 1) // 2
+        pairs = None
 
-    def count_le(t):  # off-diagonal entries <= t; the n diagonal zeros always are
-        return jnp.sum(bits <= t) - n
+        def count_le(t):  # off-diagonal entries <= t; the n diagonal zeros always are
+            return jnp.sum(bits <= t) - n
+    else:
+        nv = jnp.sum(valid.astype(itype))
+        m = nv * (nv - 1) // 2
+        pairs = valid[:, None] & valid[None, :] & ~jnp.eye(n, dtype=bool)
+
+        def count_le(t):  # off-diagonal entries of valid pairs <= t
+            return jnp.sum(pairs & (bits <= t))
 
     # The off-diagonal entries hold every pair twice; the median of that doubled
     # set is the median over i<j: the mean of its order statistics m−1 and m.
@@ -206,22 +217,43 @@ def _median_pairwise_distance(d2: jax.Array) -> jax.Array:
         return jnp.where(enough, lo, mid + 1), jnp.where(enough, mid, hi)
 
     nbits = 8 * d2.dtype.itemsize
-    _, hi = jax.lax.fori_loop(0, nbits, bisect, (jnp.zeros((), itype), jnp.max(bits)))
+    top = jnp.max(bits) if pairs is None else jnp.max(jnp.where(pairs, bits, 0))
+    _, hi = jax.lax.fori_loop(0, nbits, bisect, (jnp.zeros((), itype), top))
     lower = jax.lax.bitcast_convert_type(hi, d2.dtype)
-    upper = jnp.where(
-        count_le(hi) >= m + 1, lower, jnp.min(jnp.where(bits > hi, d2, jnp.inf))
-    )
+    above = bits > hi if pairs is None else pairs & (bits > hi)
+    upper = jnp.where(count_le(hi) >= m + 1, lower, jnp.min(jnp.where(above, d2, jnp.inf)))
     return 0.5 * (jnp.sqrt(lower) + jnp.sqrt(upper))
 
 
-def _median_bandwidth_from_sqdist(d2: jax.Array) -> jax.Array:
-    """Median heuristic s = median_{i<j} dist_ij / √(log n) from squared distances."""
+def _median_bandwidth_from_sqdist(d2: jax.Array, valid: jax.Array | None = None) -> jax.Array:
+    """Median heuristic s = median_{i<j} dist_ij / √(log n) from squared distances.
+
+    With `valid` ((n,) bool), over the valid particles only (n: how many).
+    """
     n = d2.shape[0]
     # No gradient flows through the bandwidth (and none into the bisection).
-    med = _median_pairwise_distance(jax.lax.stop_gradient(d2))
+    med = _median_pairwise_distance(jax.lax.stop_gradient(d2), valid)
+    if valid is None:
+        scale = math.sqrt(math.log(n))
+    else:
+        nv = jnp.sum(valid).astype(d2.dtype)
+        # N.B. the static constant when all are valid: the same bits as without a mask.
+        scale = jnp.where(nv == n, math.sqrt(math.log(n)),
+                          jnp.sqrt(jnp.log(jnp.maximum(nv, 2.0))))
+        med = jnp.where(nv >= 2, med, 0.0)
     # N.B. when most particles of a group coincide the median is 0; any positive
     # bandwidth gives coincident particles zero repulsion, so fall back to 1.
-    return jnp.where(med > 0, med / math.sqrt(math.log(n)), 1.0)
+    return jnp.where(med > 0, med / scale, 1.0)
+
+
+def _mean_rows(x: jax.Array, valid: jax.Array | None) -> jax.Array:
+    """(D,) mean of the rows of x, of the valid ones when a mask is given."""
+    if valid is None:
+        return jnp.mean(x, axis=0)
+    count = jnp.maximum(jnp.sum(valid), 1).astype(x.dtype)
+    masked = jnp.sum(jnp.where(valid[:, None], x, 0.0), axis=0) / count
+    # N.B. jnp.mean's own bits when every row is valid (results stay bit-identical).
+    return jnp.where(jnp.all(valid), jnp.mean(x, axis=0), masked)
 
 
 def _separable_repulsion(
@@ -290,6 +322,7 @@ class Kernel:
         *,
         jac: jax.Array | None = None,
         features: tuple[jax.Array, jax.Array] | None = None,
+        valid: jax.Array | None = None,
     ) -> KernelTerms:
         """Gram matrix, weighted repulsion and bandwidths at the particles x.
 
@@ -301,6 +334,10 @@ class Kernel:
             repulsion is then returned in θ-space, (n, d).
           features: (F (n, f), J_F (n, f, d)) features from the log density,
             only for a `feature_kernel` without its own feature map.
+          valid: (n,) bool or None (all): particles that count. The median
+            heuristic and the centring read valid particles only, so an invalid
+            one (a non-finite log density, weight 0) changes no other particle's
+            terms; its own rows are computed but meaningless.
 
         Returns:
           KernelTerms(gram (n, n), repulsion (n, D) or (n, d), params).
@@ -381,7 +418,7 @@ class _Stationary(Kernel):
             group_of[idx] = g
         return (1.0 / s**2)[group_of]
 
-    def evaluate(self, x, weights=None, *, jac=None, features=None) -> KernelTerms:
+    def evaluate(self, x, weights=None, *, jac=None, features=None, valid=None) -> KernelTerms:
         """See `Kernel.evaluate`."""
         if features is not None:
             raise ValueError(
@@ -394,7 +431,7 @@ class _Stationary(Kernel):
         specs = self._bandwidth_specs(len(groups))
         # Distances are translation invariant: centring keeps the expanded
         # ‖a‖² + ‖b‖² − 2a·b accurate in float32.
-        x = x - jnp.mean(x, axis=0)
+        x = x - _mean_rows(x, valid)
         z, c = self._embed(x)
         cols = [np.concatenate([idx + k * dim for k in range(c)]) for idx in groups]
         if all(isinstance(b, float) for b in specs):
@@ -406,7 +443,7 @@ class _Stationary(Kernel):
             for b, col in zip(specs, cols, strict=True):
                 d2 = _sqdist(_take(z, col))
                 s_g = (
-                    _median_bandwidth_from_sqdist(d2)
+                    _median_bandwidth_from_sqdist(d2, valid)
                     if b == "median"
                     else jnp.asarray(b)
                 )
@@ -542,7 +579,7 @@ class SumKernel(Kernel):
         _check_cover(idx, dim, "sum_kernels terms", once=False)
         return idx
 
-    def evaluate(self, x, weights=None, *, jac=None, features=None) -> KernelTerms:
+    def evaluate(self, x, weights=None, *, jac=None, features=None, valid=None) -> KernelTerms:
         """See `Kernel.evaluate`."""
         if features is not None:
             raise ValueError(
@@ -556,7 +593,7 @@ class SumKernel(Kernel):
         params = []
         for (w, kernel, _), idx in zip(self.terms, self._indices(dim), strict=True):
             sub_jac = None if jac is None else jac[:, idx, :]
-            ev = kernel.evaluate(_take(x, idx), weights, jac=sub_jac)
+            ev = kernel.evaluate(_take(x, idx), weights, jac=sub_jac, valid=valid)
             gram = gram + w * ev.gram
             if jac is None:
                 repulsion = repulsion.at[:, idx].add(w * ev.repulsion)
@@ -660,14 +697,14 @@ class FeatureKernel(Kernel):
         psi = jnp.concatenate([x, feats.astype(x.dtype)], axis=1)
         return psi, jnp.concatenate([eye, feats_jac.astype(x.dtype)], axis=1)
 
-    def evaluate(self, x, weights=None, *, jac=None, features=None) -> KernelTerms:
+    def evaluate(self, x, weights=None, *, jac=None, features=None, valid=None) -> KernelTerms:
         """See `Kernel.evaluate`; the repulsion is returned in θ-space, (n, d)."""
         check_particles(x, name="x")
         psi, psi_jac = self._embed(x, features)
         if jac is not None:
             psi_jac = jnp.einsum("nek,nkd->ned", psi_jac, jac)
         base = self._base(x.shape[1], psi.shape[1] - x.shape[1] * self.include_inputs)
-        return base.evaluate(psi, weights, jac=psi_jac)
+        return base.evaluate(psi, weights, jac=psi_jac, valid=valid)
 
     def embed(self, x: jax.Array) -> jax.Array:
         """ψ(x) for one point x of shape (d,); needs feature_fn."""

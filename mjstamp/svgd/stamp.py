@@ -104,6 +104,11 @@ class StampConfig:
         at most the phase's near-zero threshold (`near_zero_threshold`: it
         feels no gradient) and its log density is at most the population's
         median (it is not resting in a good mode), or either is not finite.
+      nonfinite_redraw: 0 (never) or M >= 1: a particle whose log density,
+        score or features are not finite is frozen for the iteration (both
+        phases); after M consecutive such iterations it is re-drawn by
+        `redraw` when one is given (and its optimizer moments zeroed), else it
+        stays frozen.
     """
 
     svgd_learning_rate: float | Schedule = 1e-2
@@ -117,6 +122,7 @@ class StampConfig:
     seed: int = 0
     jacobian: JacobianMode = "auto"
     rescue_window: int = 0
+    nonfinite_redraw: int = 3
 
     def __post_init__(self):
         """Validates every field (ValueError naming the field and its range)."""
@@ -142,6 +148,7 @@ class StampConfig:
                 raise ValueError(f"{name} must be a float >= 0; got {value!r}")
         _count(self.seed, "seed", 0)
         _count(self.rescue_window, "rescue_window", 0)
+        _count(self.nonfinite_redraw, "nonfinite_redraw", 0)
         check_mode(self.jacobian, "jacobian")
 
 
@@ -156,7 +163,8 @@ class StampDiagnostics(NamedTuple):
       learning_rate: (T,) step size ε when the optimizer exposes it (the
         default ones do), NaN otherwise.
       displacement: (T,) mean ‖Δθ_i‖ of the iteration: the step actually taken.
-      n_nonfinite: (T,) particles with a NaN/inf log ρ or gradient.
+      nonfinite_particles: (T,) particles with a NaN/inf log ρ, score or
+        features: frozen that iteration and counted for no other particle.
       step_seconds: (T,) wall time of each iteration; the first of each phase
         includes compiling its step (or loading it from the caches).
       driving_norm_mean: (T,) mean over particles of ‖D_i‖, the driving term
@@ -184,6 +192,8 @@ class StampDiagnostics(NamedTuple):
         kernel averages every particle's score, so a particle in a narrow valley
         follows the crowd rather than its valley; NaN in SGD.
       rescued: (T,) particles re-drawn after the iteration (`rescue_window`).
+      nonfinite_redrawn: (T,) particles re-drawn after the iteration for
+        being non-finite `nonfinite_redraw` iterations in a row.
     """
 
     logdensity_mean: np.ndarray
@@ -192,7 +202,7 @@ class StampDiagnostics(NamedTuple):
     phase: np.ndarray
     learning_rate: np.ndarray
     displacement: np.ndarray
-    n_nonfinite: np.ndarray
+    nonfinite_particles: np.ndarray
     step_seconds: np.ndarray
     driving_norm_mean: np.ndarray
     driving_norm_median: np.ndarray
@@ -205,6 +215,7 @@ class StampDiagnostics(NamedTuple):
     near_zero_threshold: np.ndarray
     self_weight_median: np.ndarray
     rescued: np.ndarray
+    nonfinite_redrawn: np.ndarray
 
 
 class StampResult(NamedTuple):
@@ -219,6 +230,8 @@ class StampResult(NamedTuple):
       svgd_converged: True if the SVGD phase ended by the convergence test.
       sgd_converged: True if the SGD phase ended by the convergence test.
       rescued: (n,) times each particle was re-drawn (`rescue_window`).
+      nonfinite_redrawn: (n,) times each particle was re-drawn for being
+        non-finite (`nonfinite_redraw`).
     """
 
     particles: jax.Array
@@ -229,6 +242,7 @@ class StampResult(NamedTuple):
     svgd_converged: bool
     sgd_converged: bool
     rescued: np.ndarray
+    nonfinite_redrawn: np.ndarray
 
 
 def has_converged(
@@ -291,7 +305,7 @@ class IterationRecord(NamedTuple):
     phase: Any
     learning_rate: Any
     displacement: Any
-    n_nonfinite: Any
+    nonfinite_particles: Any
     step_seconds: Any
     driving_norm_mean: Any
     driving_norm_median: Any
@@ -304,6 +318,7 @@ class IterationRecord(NamedTuple):
     near_zero_threshold: Any
     self_weight_median: Any
     rescued: Any
+    nonfinite_redrawn: Any
 
 
 # N.B. over 80 lines: 36 of them the docstring; the loop itself is `_Loop`.
@@ -347,7 +362,8 @@ def run_stamp(
         example_key, phase_name) -> compiled step; default `jax.jit`. A task
         passes `mjstamp.tracecache.cached_jit` here so a re-run skips tracing.
       redraw: redraw(key, k) -> (k, d) fresh particles for the stalled ones
-        (`config.rescue_window`), e.g. draws from the prior; required when
+        (`config.rescue_window`) and the persistently non-finite ones
+        (`config.nonfinite_redraw`), e.g. draws from the prior; required when
         rescue is on.
 
     Returns:
@@ -396,7 +412,7 @@ def run_stamp(
         diagnostics=_assemble(loop.rows, particles.shape[1]), svgd_iters=svgd_iters,
         sgd_iters=len(loop.rows) - svgd_iters,
         svgd_converged=svgd_converged, sgd_converged=sgd_converged,
-        rescued=loop.rescue.counts,
+        rescued=loop.rescue.counts, nonfinite_redrawn=loop.rescue.nonfinite_counts,
     )  # fmt: skip
 
 
@@ -426,7 +442,8 @@ class _Loop:
         redraw=None,
     ):
         self.key = key
-        self.rescue = _Rescue(config.rescue_window, redraw, n)
+        self.rescue = _Rescue(config.rescue_window, redraw, n,
+                              nonfinite_window=config.nonfinite_redraw)
         self.config = config
         self.jit = jit
         self.n = n
@@ -442,6 +459,11 @@ class _Loop:
             disable=not show,
         )
         self.rows: list[IterationRecord] = []
+
+    def _split(self) -> jax.Array:
+        """A fresh subkey; the loop's key moves on."""
+        self.key, sub = jax.random.split(self.key)
+        return sub
 
     def run_phase(self, phase: int, step, state, max_iters: int):
         """Runs `step` until the convergence test passes or `max_iters`; (state, converged)."""
@@ -471,7 +493,13 @@ class _Loop:
                 row = row._replace(rescued=k)
                 if k:
                     self.say(f"{name.upper()} {t}: {k} stalled particles re-drawn")
-            if not self.rows and int(row.n_nonfinite) == self.n:
+            if self.rescue.nonfinite_window:
+                state, k = self.rescue.nonfinite(state, score_norm, self._split)
+                row = row._replace(nonfinite_redrawn=k)
+                if k:
+                    self.say(f"{name.upper()} {t}: {k} particles non-finite "
+                             f"{self.rescue.nonfinite_window} iterations in a row re-drawn")
+            if not self.rows and int(row.nonfinite_particles) == self.n:
                 raise ValueError(
                     f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {self.n} "
                     "initial particles; it must be finite for at least one"
@@ -498,13 +526,17 @@ class _Loop:
 
 
 class _Rescue:
-    """Counts each particle's consecutive stalled iterations; re-draws those stalled R times."""
+    """Re-draws particles: those stalled R iterations in a row, and those non-finite M in a row."""
 
-    def __init__(self, window: int, redraw, n: int):
+    def __init__(self, window: int, redraw, n: int, *, nonfinite_window: int = 0):
         self.window = window
         self.redraw = redraw
+        # N.B. without a source of fresh particles a non-finite one just stays frozen.
+        self.nonfinite_window = nonfinite_window if redraw is not None else 0
         self.stalled = np.zeros(n, dtype=int)
         self.counts = np.zeros(n, dtype=int)
+        self.failing = np.zeros(n, dtype=int)
+        self.nonfinite_counts = np.zeros(n, dtype=int)
 
     def __call__(self, state, info: StepInfo, score_norm, threshold: float, key):
         """(state with the particles stalled `window` times re-drawn, how many)."""
@@ -517,6 +549,26 @@ class _Rescue:
         idx = np.flatnonzero(self.stalled >= self.window)
         if idx.size == 0:
             return state, 0
+        state = self._redraw(state, idx, key)
+        self.counts[idx] += 1
+        return state, int(idx.size)
+
+    def nonfinite(self, state, score_norm, new_key):
+        """(state with the particles non-finite `nonfinite_window` times in a row re-drawn, k).
+
+        `new_key()` is called only when some particle is re-drawn, so a run without
+        one draws the same PRNG keys as before this check existed.
+        """
+        self.failing = np.where(np.isnan(score_norm), self.failing + 1, 0)
+        idx = np.flatnonzero(self.failing >= self.nonfinite_window)
+        if idx.size == 0:
+            return state, 0
+        state = self._redraw(state, idx, new_key())
+        self.nonfinite_counts[idx] += 1
+        return state, int(idx.size)
+
+    def _redraw(self, state, idx: np.ndarray, key):
+        """State with particles `idx` drawn afresh, their Adam moments zeroed, counters reset."""
         particles = state.particles
         fresh = jnp.asarray(self.redraw(key, int(idx.size)), particles.dtype)
         if fresh.shape != (idx.size, particles.shape[1]):
@@ -528,11 +580,10 @@ class _Rescue:
                 return leaf.at[idx].set(0)
             return leaf
 
-        state = state._replace(particles=particles.at[idx].set(fresh),
-                               opt_state=jax.tree.map(reset, state.opt_state))
         self.stalled[idx] = 0
-        self.counts[idx] += 1
-        return state, int(idx.size)
+        self.failing[idx] = 0
+        return state._replace(particles=particles.at[idx].set(fresh),
+                              opt_state=jax.tree.map(reset, state.opt_state))
 
 
 _FROM_STEP = tuple(f for f in IterationRecord._fields if f in StepInfo._fields)
@@ -549,7 +600,7 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
     copied = {name: getattr(info, name) for name in _FROM_STEP}
     record, score_norm = jax.device_get((
         IterationRecord(**{**dict.fromkeys(IterationRecord._fields), **copied})._replace(
-            phase=phase, rescued=0),
+            phase=phase, rescued=0, nonfinite_redrawn=0),
         info.score_norm,
     ))
     finite = score_norm[np.isfinite(score_norm)]
@@ -559,7 +610,8 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
 
 # dtype of each StampDiagnostics column; bandwidth is stacked apart (its width g may differ
 # between phases: SGD has none), and so is displacement_per_coordinate (its width is d).
-_COLUMN_DTYPES = {"phase": np.int8, "n_nonfinite": int, "rescued": int}
+_COLUMN_DTYPES = {"phase": np.int8, "nonfinite_particles": int, "rescued": int,
+                  "nonfinite_redrawn": int}
 _WIDE = ("bandwidth", "displacement_per_coordinate")
 
 

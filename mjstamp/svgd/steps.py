@@ -89,8 +89,9 @@ class StepInfo(NamedTuple):
       learning_rate: () ε read from an `optax.inject_hyperparams` optimizer
         state, NaN when the optimizer does not expose it.
       displacement: () mean over particles of ‖θ_i(new) − θ_i‖.
-      n_nonfinite: () number of particles whose log ρ or gradient was NaN/inf;
-        they get zero score and zero weight this step.
+      nonfinite_particles: () number of particles whose log ρ, score or features
+        were NaN/inf: they are frozen this step (no update, optimizer state
+        kept), get zero weight, and count for no other particle's kernel terms.
       score_norm: (n,) ‖∇log ρ(θ_i)‖ per particle, NaN where it is not finite.
       driving_norm_mean: () mean over particles of ‖D_i‖, the driving term
         D_i = Σ_j a_j k(θ_j, θ_i) ∇log ρ(θ_j) (a_j = 1/n for SVGD, the
@@ -118,7 +119,7 @@ class StepInfo(NamedTuple):
     weights: jax.Array
     learning_rate: jax.Array
     displacement: jax.Array
-    n_nonfinite: jax.Array
+    nonfinite_particles: jax.Array
     score_norm: jax.Array
     driving_norm_mean: jax.Array
     driving_norm_median: jax.Array
@@ -268,7 +269,7 @@ def near_zero_share(score_norm: jax.Array, threshold: Any, *, xp: Any = jnp) -> 
     """Share of the n particles whose score norm is at most `threshold`.
 
     Particles with a non-finite score are not counted as near zero (they are
-    `n_nonfinite`).
+    `nonfinite_particles`).
 
     Args:
       score_norm: (n,) ‖∇log ρ(θ_i)‖, NaN where not finite.
@@ -338,7 +339,10 @@ def stein_direction(
         log_w = importance_log_weights(jnp.where(ok, logp, jnp.nan), log_target)
         a = jnp.exp(jax.lax.stop_gradient(log_w))
     a = a.astype(x.dtype)
-    terms = kernel.evaluate(x, a, features=features)
+    # N.B. a particle that is not finite counts for no other one: weight 0, and
+    # left out of the median heuristic (`valid`); its θ is zeroed so a NaN in it
+    # cannot reach the n×n products (0 · NaN is NaN).
+    terms = kernel.evaluate(_zero_rows(x, ok), a, features=features, valid=ok)
     # φ_i = Σ_j a_j k_ji s_j + Σ_j a_j ∇_{x_j} k_ji: one n×n product per term. The two
     # terms are kept apart only for their norms (O(n d) on top of the O(n² d) kernel).
     kw = a[:, None] * terms.gram  # kw[j, i] = a_j k_ji
@@ -379,7 +383,7 @@ def _info(
         weights=weights,
         learning_rate=nan,
         displacement=nan,
-        n_nonfinite=logp.shape[0] - count,
+        nonfinite_particles=logp.shape[0] - count,
         score_norm=jnp.where(ok, jnp.linalg.norm(score, axis=1), jnp.nan),
         driving_norm_mean=d_mean,
         driving_norm_median=d_median,
@@ -406,9 +410,23 @@ def _learning_rate(opt_state: Any) -> jax.Array:
     return jnp.asarray(jnp.nan if lr is None else lr, jnp.float32)
 
 
-def _apply(optimizer, state: SVGDState, direction: jax.Array, info: StepInfo):
-    """Ascends along `direction` with optax (which minimises −direction)."""
+def _apply(optimizer, state: SVGDState, direction: jax.Array, info: StepInfo, ok: jax.Array):
+    """Ascends along `direction` with optax (which minimises −direction).
+
+    Particles not `ok` ((n,) bool: a non-finite log density, score or
+    features) are frozen for the step: no update, and their rows of the
+    optimizer state (Adam's moments) kept as they were.
+    """
     updates, opt_state = optimizer.update(-direction, state.opt_state, state.particles)
+    updates = _zero_rows(updates, ok)
+    shape = state.particles.shape
+
+    def keep_frozen(new, old):  # per-particle state rows (n, d) of frozen particles
+        if getattr(new, "shape", None) == shape and getattr(old, "shape", None) == shape:
+            return jnp.where(ok[:, None], new, old)
+        return new
+
+    opt_state = jax.tree.map(keep_frozen, opt_state, state.opt_state)
     particles = optax.apply_updates(state.particles, updates)
     info = info._replace(
         learning_rate=_learning_rate(opt_state),
@@ -496,7 +514,7 @@ def _build_stein_step(
             log_target_fn=log_target_fn,
             jacobian=jacobian,
         )
-        return _apply(optimizer, state, phi, info)
+        return _apply(optimizer, state, phi, info, ~jnp.isnan(info.score_norm))  # NaN: not ok
 
     return step
 
@@ -544,7 +562,7 @@ def build_sgd_step(
         info = _info(
             logp, ok, score, jnp.zeros((0,), logp.dtype), jnp.full((n,), 1.0 / n), score
         )
-        return _apply(optimizer, state, score, info)
+        return _apply(optimizer, state, score, info, ok)
 
     return step
 
