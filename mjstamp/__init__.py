@@ -65,7 +65,10 @@ def load(path: str | os.PathLike, *, task: str | None = None):
       trajectories (trajectories.npz).
 
     Raises:
-      MjstampError: not a results directory, another schema, another task.
+      MjstampError: not a results directory, an unfinished solve (a
+        checkpoint.npz but no plans.json), another schema, another task, or a
+        damaged file (truncated, not JSON or .npz, missing arrays or keys,
+        wrong shapes); always one line naming the file and what to do.
     """
     from mjstamp.viz.results import load_results  # noqa: PLC0415
 

@@ -13,6 +13,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
+import shlex
 import tempfile
 import time
 from pathlib import Path
@@ -23,7 +25,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from mjstamp.errors import MjstampError
+from mjstamp.errors import MjstampError, valid_list
 from mjstamp.fileio import write_atomic
 from mjstamp.scenes import mjx
 from mjstamp.scenes.fidelity import describe
@@ -424,43 +426,285 @@ def save(
     return written
 
 
+# What readers of a results directory rely on (playback, `select_plans`,
+# `mjstamp.load`), checked once by `load` and `load_model`; `SolveResult.summary()`
+# and `arrays()` write all of it and more. {key: type}, optional keys checked when
+# present.
+_SUMMARY = {"task": str, "plans": list, "task_plans": list}
+_SUMMARY_OPTIONAL = {"particles": int, "config": dict, "declaration": dict}
+_PLAN = {"particle": int, "task_plan": str, "verified": bool, "cost": float}
+_PLAN_OPTIONAL = {"predicted_task_plan": str, "repaired": bool, "motion_plan": dict}
+_ROW = {"task_plan": str}
+# trajectories.npz: required arrays, and the shape of each (symbols bind on first use).
+_TRAJECTORIES = ("particle", "qpos0", "qpos")
+_TRAJECTORY_SHAPES = {
+    "particle": ("rows",), "qpos": ("rows", "T", "nq"), "qpos0": ("rows", "nq"),
+    "qvel0": ("rows", "nv"), "qvel": ("rows", "T", "nv"), "ctrl": ("rows", "T", "nu"),
+    "xpos": ("rows", "T", "nbody", 3), "timestep": (),
+}
+# particles.npz: the arrays with one row per particle (the rest are per iteration).
+_PER_PARTICLE = ("theta", "svgd_theta", "initial_theta", "cost", "returned", "verified",
+                 "repaired", "source", "task_plan", "predicted_task_plan")
+_FILES = ("particles.npz", "trajectories.npz", "scene.mjb")
+_NAME = re.compile(r"[A-Za-z0-9_.-]+")
+
+
+def _task_word(task: object) -> str:
+    """A task name fit for a suggested command line, else the placeholder TASK."""
+    return task if isinstance(task, str) and _NAME.fullmatch(task) else "TASK"
+
+
+def _rerun(path: Path, task: object) -> str:
+    return f"re-run `mjstamp solve {_task_word(task)} --out {shlex.quote(str(path))}`"
+
+
+def _damaged(file: Path, what: str, task: object) -> MjstampError:
+    """One line: the file, what is wrong with it, and the solve that writes it anew."""
+    what = " ".join(what.split())  # exception texts may span lines
+    return MjstampError(f"{str(file)!r} {what}; {_rerun(file.parent, task)}")
+
+
+_KINDS = {dict: "an object", list: "a list", str: "a string", bool: "true/false",
+          int: "an integer", float: "a number", type(None): "null"}
+
+
+def _is(value: object, kind: type) -> bool:
+    """Whether a JSON value is of `kind` (a bool is no number; an integer is a float)."""
+    if isinstance(value, bool) and kind is not bool:
+        return False
+    return isinstance(value, int | float) if kind is float else isinstance(value, kind)
+
+
+def _check_fields(obj: dict, where: str, required: dict, optional: dict, bad) -> None:
+    for key in required:
+        if key not in obj:
+            bad(f"has no {key!r} in {where}" if where else f"lacks {key!r}")
+    for key, kind in {**required, **optional}.items():
+        if key in obj and not _is(obj[key], kind):
+            label = f"{where}.{key}" if where else repr(key)
+            bad(f"has {label} {_KINDS[type(obj[key])]}, not {_KINDS[kind]}")
+
+
+def _check_summary(plans: Path, summary: dict) -> None:
+    """The shape of plans.json that readers rely on (`_SUMMARY` and below)."""
+    task = summary.get("task")
+
+    def bad(what: str):
+        raise _damaged(plans, what, task)
+
+    _check_fields(summary, "", _SUMMARY, _SUMMARY_OPTIONAL, bad)
+    seen = set()
+    for i, entry in enumerate(summary["plans"]):
+        if not isinstance(entry, dict):
+            bad(f"has plans[{i}] {_KINDS[type(entry)]}, not an object")
+        _check_fields(entry, f"plans[{i}]", _PLAN, _PLAN_OPTIONAL, bad)
+        if entry["particle"] < 0 or entry["particle"] in seen:
+            bad(f"has plans[{i}].particle {entry['particle']} "
+                + ("twice" if entry["particle"] in seen else "< 0"))
+        seen.add(entry["particle"])
+    for i, row in enumerate(summary["task_plans"]):
+        if not isinstance(row, dict):
+            bad(f"has task_plans[{i}] {_KINDS[type(row)]}, not an object")
+        _check_fields(row, f"task_plans[{i}]", _ROW, {}, bad)
+    display = summary.get("declaration", {}).get("display") or {}
+    if not isinstance(display, dict):
+        bad(f"has declaration.display {_KINDS[type(display)]}, not an object")
+    trace, force = display.get("trace", []), display.get("force", [])
+    if not (isinstance(trace, list) and all(isinstance(b, str) for b in trace)):
+        bad("has declaration.display.trace that is not a list of body names")
+    if not (isinstance(force, list) and all(
+            isinstance(p, list) and len(p) == 2 and all(isinstance(g, str) for g in p)
+            for p in force)):
+        bad("has declaration.display.force that is not a list of [geom, geom] pairs")
+
+
+def _checkpoint_task(checkpoint: Path) -> object:
+    """The task named in a checkpoint's `meta` (a JSON string), or None if unreadable."""
+    try:
+        with np.load(checkpoint, allow_pickle=False) as f:
+            meta = f["meta"].item()
+        meta = meta.decode() if isinstance(meta, bytes) else meta
+        return json.loads(meta).get("task")
+    except Exception:  # noqa: BLE001 - a damaged checkpoint only costs us the task's name
+        return None
+
+
+def _read_summary(path: Path) -> dict:
+    """plans.json, parsed and checked: one MjstampError line for any damage."""
+    plans = path / "plans.json"
+    if not plans.is_file():
+        checkpoint = path / "checkpoint.npz"
+        if checkpoint.is_file():
+            task = _task_word(_checkpoint_task(checkpoint))
+            raise MjstampError(
+                f"{str(path)!r} holds a checkpoint.npz but no plans.json: the solve did not "
+                f"finish; `mjstamp solve {task} --resume {shlex.quote(str(path))}` continues it"
+            )
+        raise MjstampError(f"{str(path)!r} holds no plans.json (not a results directory; "
+                           "`mjstamp solve TASK --out DIR` writes one)")
+    try:
+        raw = plans.read_bytes()
+    except OSError as e:
+        raise _damaged(plans, f"cannot be read ({e.strerror or e})", None) from None
+    text = raw.decode(errors="replace")
+    found = re.search(r'"task":\s*"([^"\\]*)"', text)  # the task, even if JSON fails
+    try:
+        summary = json.loads(raw.decode())
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError
+        raise _damaged(plans, f"is not valid JSON (truncated or overwritten?): {e}",
+                       found and found.group(1)) from None
+    if not isinstance(summary, dict):
+        raise _damaged(plans, f"holds {_KINDS[type(summary)]}, not an object with "
+                       "schema_version, task and plans", None)
+    version = summary.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise MjstampError(
+            f"{str(plans)!r} has schema_version {version!r}; this mjstamp reads "
+            f"{SCHEMA_VERSION} ({_rerun(path, summary.get('task'))})"
+        )
+    _check_summary(plans, summary)
+    return summary
+
+
+def _read_npz(file: Path, task: str) -> dict[str, np.ndarray]:
+    try:
+        f = np.load(file, allow_pickle=False)
+    except Exception as e:  # noqa: BLE001 - BadZipFile, EOFError, ValueError, OSError...
+        raise _damaged(file, f"is truncated or not an .npz archive ({type(e).__name__}: {e})",
+                       task) from None
+    if not isinstance(f, np.lib.npyio.NpzFile):
+        raise _damaged(file, "holds one .npy array, not an .npz archive", task)
+    try:
+        with f:
+            return {k: f[k] for k in f.files}
+    except Exception as e:  # noqa: BLE001 - a corrupt member: zlib.error, BadZipFile (CRC)...
+        raise _damaged(file, f"is corrupt ({type(e).__name__}: {e})", task) from None
+
+
+def _shape_error(arrays: dict, dims: dict, bound: set[str]) -> str | None:
+    """What is wrong with the shapes of trajectories.npz's arrays, or None.
+
+    Args:
+      arrays: the arrays.
+      dims: sizes of the symbols in `_TRAJECTORY_SHAPES` known so far; filled
+        in by the first array that has each.
+      bound: the symbols whose sizes come from scene.mjb (named in the error).
+    """
+    for key, spec in _TRAJECTORY_SHAPES.items():
+        if key not in arrays:
+            continue
+        a = arrays[key]
+        numeric = "iu" if key == "particle" else "fiu"
+        if a.dtype.kind not in numeric:
+            return f"has {key} of dtype {a.dtype}, not numbers"
+        expected = f"has {key} of shape {a.shape}, not ({', '.join(map(str, spec))})"
+        if a.ndim != len(spec):
+            return expected
+        for size, sym in zip(a.shape, spec, strict=True):
+            want = sym if isinstance(sym, int) else dims.setdefault(sym, size)
+            if size != want and isinstance(sym, int):
+                return expected
+            if size != want:
+                if sym in bound:
+                    return (f"has {key} of shape {a.shape} but scene.mjb has {sym}={want} "
+                            "(files from different runs?)")
+                return (f"has {key} of shape {a.shape}, where {sym}={want} "
+                        "(files from different runs?)")
+    if dims.get("T") == 0:
+        return "has trajectories of no steps"
+    if "timestep" in arrays and not float(arrays["timestep"]) > 0:
+        return f"has timestep {float(arrays['timestep'])}, not > 0"
+    return None
+
+
 def load(out: str | os.PathLike) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
     """Loads what `save` wrote: (plans.json contents, {npz name: arrays}).
 
-    The one check of a results directory's schema (playback and `mjstamp.load`
-    go through here).
+    The one check of a results directory's files (playback and `mjstamp.load`
+    go through here and `load_model`): every damage is one `MjstampError`
+    line naming the file, what is wrong and what to do.
+
+    Returns:
+      The summary and {"particles": ..., "trajectories": ...}.
 
     Raises:
-      MjstampError: no plans.json, not JSON, another schema version.
+      MjstampError: no plans.json (with a checkpoint.npz: an unfinished
+        solve), plans.json not JSON, of another schema version or of the wrong
+        shape; a file missing, truncated, not an .npz, missing arrays or with
+        arrays of the wrong shape (fewer rows than plans.json's plans).
     """
     path = Path(out)
-    plans = path / "plans.json"
-    if not plans.is_file():
-        raise MjstampError(f"{str(path)!r} holds no plans.json (not a results directory)")
-    try:
-        summary = json.loads(plans.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise MjstampError(f"{str(plans)!r} is not valid JSON: {e}") from None
-    version = summary.get("schema_version") if isinstance(summary, dict) else None
-    if version != SCHEMA_VERSION:
-        task = summary.get("task", "TASK") if isinstance(summary, dict) else "TASK"
-        raise MjstampError(
-            f"{str(plans)!r} has schema_version {version!r}; this mjstamp reads "
-            f"{SCHEMA_VERSION} (re-run `mjstamp solve {task} --out {path}`)"
-        )
-    arrays = {}
-    for npz in sorted(path.glob("*.npz")):
-        with np.load(npz, allow_pickle=False) as f:
-            arrays[npz.stem] = {k: f[k] for k in f.files}
-    return summary, arrays
+    summary = _read_summary(path)
+    task = summary["task"]
+    missing = [name for name in _FILES if not (path / name).is_file()]
+    if missing:
+        raise MjstampError(f"{str(path)!r} lacks {valid_list(missing)} (an incomplete copy?); "
+                           f"{_rerun(path, task)}")
+    listed = sorted(e["particle"] for e in summary["plans"])
+
+    file = path / "particles.npz"
+    particles = _read_npz(file, task)
+    count = summary.get("particles")
+    for key in _PER_PARTICLE:
+        if key not in particles:
+            continue
+        a = particles[key]
+        if a.ndim == 0:
+            raise _damaged(file, f"has {key} of shape (), not one row per particle", task)
+        n = a.shape[0]
+        count = n if count is None else count  # no count in plans.json: the first sets it
+        if n != count or (listed and n <= listed[-1]):
+            raise _damaged(file, f"has {key} of {n} rows, but plans.json has " + (
+                f"{count} particles" if n != count else f"a plan of particle {listed[-1]}"),
+                task)
+
+    file = path / "trajectories.npz"
+    traj = _read_npz(file, task)
+    absent = [k for k in _TRAJECTORIES if k not in traj]
+    if absent:
+        raise _damaged(file, f"lacks {valid_list(absent)}", task)
+    error = _shape_error(traj, {}, set())
+    if error:
+        raise _damaged(file, error, task)
+    unsaved = sorted(set(listed) - set(traj["particle"].tolist()))
+    if unsaved:
+        raise _damaged(file, f"has no trajectory of particle {valid_list(unsaved)}, which "
+                       "plans.json lists (fewer rows than plans?)", task)
+    return summary, {"particles": particles, "trajectories": traj}
 
 
-def load_model(out: str | os.PathLike) -> mujoco.MjModel:
-    """The compiled scene saved with a results directory (scene.mjb)."""
+def load_model(out: str | os.PathLike, *, trajectories: dict[str, np.ndarray] | None = None,
+               task: str | None = None) -> mujoco.MjModel:
+    """The compiled scene saved with a results directory (scene.mjb).
+
+    Args:
+      out: the results directory.
+      trajectories: its trajectories.npz arrays (from `load`), whose sizes
+        (nq, nv, nu, nbody) must be the scene's.
+      task: its task, for the advice in errors.
+
+    Raises:
+      MjstampError: no scene.mjb, not a MuJoCo model, or another scene's.
+    """
     path = Path(out) / "scene.mjb"
     if not path.is_file():
-        raise MjstampError(f"{str(path.parent)!r} holds no scene.mjb (not a results directory)")
+        raise MjstampError(f"{str(path.parent)!r} holds no scene.mjb (not a results directory; "
+                           f"{_rerun(path.parent, task)})")
+    # N.B. MuJoCo prints why a model file is unreadable on stderr (a second line
+    # and a blank one); the warning handler puts it into our one line instead.
+    warnings: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(warnings.append)
     try:
-        return mujoco.MjModel.from_binary_path(str(path))
+        m = mujoco.MjModel.from_binary_path(str(path))
     except Exception as e:  # noqa: BLE001 - MuJoCo raises a bare Exception/ValueError
-        raise MjstampError(f"{str(path)!r} is not a readable MuJoCo model: {e}") from None
+        why = "; ".join(warnings) or str(e)
+        raise _damaged(path, f"is not a readable MuJoCo model ({why})", task) from None
+    finally:
+        mujoco.set_mju_user_warning(previous)
+    if trajectories is not None:
+        sizes = {"nq": m.nq, "nv": m.nv, "nu": m.nu, "nbody": m.nbody}
+        error = _shape_error(trajectories, dict(sizes), set(sizes))
+        if error:
+            raise _damaged(path.parent / "trajectories.npz", error, task)
+    return m

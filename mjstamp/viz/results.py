@@ -67,8 +67,9 @@ def load_results(path: str | os.PathLike, *, task: str | None = None) -> Results
       task: if given, the task the directory must belong to.
 
     Raises:
-      MjstampError: the directory does not exist, is from an older schema,
-        belongs to another task, misses a file, or its files disagree.
+      MjstampError: the directory does not exist or belongs to another task;
+        any damage to its files (`plans.load`, `plans.load_model`: one line
+        naming the file, what is wrong and what to do).
     """
     path = Path(path)
     if not path.exists():
@@ -76,24 +77,12 @@ def load_results(path: str | os.PathLike, *, task: str | None = None) -> Results
     if not path.is_dir():
         raise MjstampError(f"{str(path)!r} is not a directory (expected a results directory)")
     summary, arrays = plans_io.load(path)
-    if task is not None and summary.get("task") != task:
+    if task is not None and summary["task"] != task:
         raise MjstampError(
-            f"{str(path)!r} holds plans of task {summary.get('task')!r}, not {task!r}"
+            f"{str(path)!r} holds plans of task {summary['task']!r}, not {task!r}"
         )
-    if "trajectories" not in arrays:
-        raise MjstampError(f"{str(path)!r} holds no trajectories.npz (not a results directory)")
     traj = arrays["trajectories"]
-    missing = [k for k in ("particle", "qpos0", "qpos") if k not in traj]
-    if missing:
-        raise MjstampError(
-            f"{str(path / 'trajectories.npz')!r} lacks {valid_list(missing)}"
-        )
-    m = plans_io.load_model(path)
-    if traj["qpos"].ndim != 3 or traj["qpos"].shape[-1] != m.nq:
-        raise MjstampError(
-            f"{str(path / 'trajectories.npz')!r} has qpos of shape {traj['qpos'].shape} but "
-            f"scene.mjb has nq={m.nq} (files from different runs?)"
-        )
+    m = plans_io.load_model(path, trajectories=traj, task=summary["task"])
     return Results(path=path, summary=summary, model=m, trajectories=traj)
 
 
