@@ -106,10 +106,25 @@ def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
 
     def cached(*args):
         xs = jax.tree_util.tree_leaves(args)
-        xs = [jax.random.key_data(x) if k else x for x, k in zip(xs, is_key, strict=True)]
+        xs = [jax.random.key_data(x) if k else _strong(x) for x, k in zip(xs, is_key, strict=True)]
         return jax.tree_util.tree_unflatten(out_tree, call(*xs))
 
     return cached
+
+
+def _strong(x):
+    """X as a committed, strongly typed array: what the compiled step returns.
+
+    N.B. `jax.jit` keys its cache on weak types (a Python-scalar-born array,
+    e.g. optax's injected ε) and on whether an argument is committed to a
+    device: a loop feeding a step its own outputs (committed, strongly typed)
+    would otherwise trace and compile it a second time at its second call.
+    """
+    if getattr(x, "weak_type", False):
+        x = jax.numpy.asarray(x, dtype=x.dtype)
+    if not getattr(x, "committed", False):
+        x = jax.device_put(x, jax.devices()[0])
+    return x
 
 
 def _read(path: Path):
