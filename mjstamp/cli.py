@@ -188,6 +188,46 @@ def _print_table(summary: dict) -> None:
               + (f" (missed: {', '.join(detail['missed'])})" if detail["missed"] else ""))
 
 
+def _resume_hint(argv: list[str], out: str) -> str:
+    """The command line that continues this solve: the same one with --resume OUT."""
+    import shlex
+
+    kept, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+            continue
+        if arg in ("--out", "--resume"):
+            skip = True
+            continue
+        if arg.startswith(("--out=", "--resume=")):
+            continue
+        kept.append(arg)
+    return shlex.join(["mjstamp", *kept, "--resume", out])
+
+
+def _results_dir(args) -> tuple[str | None, bool]:
+    """(results directory, resume?) of --out / --resume, checked up front."""
+    from mjstamp import checkpoint
+
+    if args.checkpoint_every is not None and not args.checkpoint_every >= 0:
+        raise MjstampError(f"--checkpoint-every={args.checkpoint_every} must be >= 0 (seconds)")
+    if args.resume is not None:
+        if args.out is not None and os.path.abspath(args.out) != os.path.abspath(args.resume):
+            raise MjstampError(f"--out {args.out!r} and --resume {args.resume!r} differ: a "
+                               "resumed solve writes its results where its checkpoint is")
+        checkpoint.read_meta(args.resume)  # one line now if there is none
+        return args.resume, True
+    if args.out is not None and os.path.isfile(os.path.join(args.out, checkpoint.FILENAME)):
+        meta = checkpoint.read_meta(args.out)
+        raise MjstampError(
+            f"{args.out!r} holds the checkpoint of an unfinished solve of task "
+            f"{meta.get('task')!r} ({checkpoint.describe(meta)}): continue it with --resume "
+            f"{args.out}, or delete {os.path.join(args.out, checkpoint.FILENAME)} to start afresh"
+        )
+    return args.out, False
+
+
 def _cmd_solve(args) -> int:
     from mjstamp import modes, plans, tasks
     from mjstamp.solve import solve
@@ -198,11 +238,15 @@ def _cmd_solve(args) -> int:
         if args.particles < 2:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
         overrides["particles"] = args.particles
-    if args.out:
-        plans.check_writable(args.out)
+    out, resume = _results_dir(args)
+    if out:
+        plans.check_writable(out)
     task, config = tasks.load(args.task, **overrides)
     progress = None if not args.quiet else False
-    result = solve(task, config, seed=args.seed, progress=progress)
+    every = 30.0 if args.checkpoint_every is None else args.checkpoint_every
+    result = solve(task, config, seed=args.seed, progress=progress, checkpoint_dir=out,
+                   resume=resume, checkpoint_every_s=every,
+                   resume_hint=_resume_hint(args.argv, out) if out else "")
     coverage = None
     if modes.supports_sweep(task) and not args.no_coverage:
         truth = modes.sweep(task, progress=progress)
@@ -210,8 +254,8 @@ def _cmd_solve(args) -> int:
                  if ok]
         coverage = modes.coverage(found, truth)
     summary = result.summary(coverage)
-    if args.out:
-        written = result.save(args.out, coverage=coverage, progress=progress)
+    if out:
+        written = result.save(out, coverage=coverage, progress=progress)
         if not args.json:
             print(f"wrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     if args.json:
@@ -271,9 +315,17 @@ def _add_task_contributions(sub, solve) -> None:
             parser.set_defaults(func=command.run)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (`mjstamp solve: error: ...`), exit status 2."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for tests and docs)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="mjstamp",
         description="Differentiable task and motion planning (STAMP) on MuJoCo MJX.",
     )
@@ -310,7 +362,13 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("task", help="registered task name (see `mjstamp tasks`)")
     solve.add_argument("--particles", type=int, default=None, help="particles (plans) to move")
     solve.add_argument("--seed", type=int, default=0)
-    solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here")
+    solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here "
+                       "(and, while STAMP runs, checkpoint.npz)")
+    solve.add_argument("--resume", metavar="DIR", help="continue the unfinished solve whose "
+                       "checkpoint is in DIR (same task, settings and seed); results go there")
+    solve.add_argument("--checkpoint-every", type=float, metavar="S", default=None,
+                       help="seconds between checkpoints with --out (default 30; 0: every "
+                       "iteration); SIGINT/SIGTERM also write one")
     solve.add_argument("--json", action="store_true", help="print one JSON object")
     solve.add_argument("--set", action="append", metavar="KEY=VALUE",
                        help="override a task setting (repeatable)")
@@ -352,15 +410,17 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `mjstamp` console script."""
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
+    args.argv = argv
     try:
         configure_jax(precision=getattr(args, "precision", "float64"))
         return args.func(args)
     except MjstampError as e:
         print(f"mjstamp: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("mjstamp: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        print(f"mjstamp: interrupted{f' ({e})' if str(e) else ''}", file=sys.stderr)
         return 130
 
 

@@ -14,6 +14,7 @@ replay. A returned plan that fails in C is refined there (`plans.repair`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import time
@@ -27,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from mjstamp import checkpoint as checkpoint_mod
 from mjstamp import plans as plans_mod
 from mjstamp import seeding, svgd
 from mjstamp.config import SolveConfig
@@ -246,6 +248,8 @@ class SolveResult:
         out = plans_mod.check_writable(out)
         written = plans_mod.save(out, self.summary(coverage), self.arrays(),
                                  model=self.problem.scene.m)
+        # N.B. plans.json is written: the solve is complete, its checkpoint spent.
+        (out / checkpoint_mod.FILENAME).unlink(missing_ok=True)
         if figures:
             written += figures_mod.save_figures(self, out, progress=progress,
                                                 jit=problem_jit(self.problem))
@@ -396,7 +400,8 @@ def _check_mjx(problem: Problem, evaluate: _Evaluator, theta0: np.ndarray, calib
             "mjx_initial_divergence_p95_m": p95}
 
 
-def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress):
+def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, *,
+               checkpointer=None, resume=None):
     widths = _box_widths(problem)
     discrete = {}
     if problem.has_actions:
@@ -413,15 +418,42 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress):
         progress=progress,
         jit=lambda step, state, key, phase: jit(step, f"stamp-{phase} {cfg}", state, key),
         redraw=problem.init,
+        checkpoint=checkpointer, resume=resume,
         **discrete,
     )
     jax.block_until_ready(result.particles)
     return result
 
 
+def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, resume: bool,
+                   every_s: float, resume_hint: str, say):
+    """(Checkpointer or None, snapshot to resume from or None), checked before any work."""
+    if directory is None:
+        if resume:
+            raise MjstampError("resume=True needs checkpoint_dir, the results directory "
+                               "holding the checkpoint")
+        return None, None
+    if isinstance(every_s, bool) or not isinstance(every_s, (int, float)) or not every_s >= 0:
+        raise MjstampError(f"checkpoint_every_s={every_s!r} must be a number >= 0 (seconds)")
+    settings = {"task": dict(problem.settings), "solve": cfg.as_dict()}
+    meta = {"task": problem.name, "version": checkpoint_mod.__version__,
+            "fingerprint": checkpoint_mod.fingerprint(problem.fingerprint, settings, seed),
+            "seed": seed, "settings": settings}
+    snap = None
+    if resume:
+        found, snap = checkpoint_mod.load(directory, expect={
+            k: meta[k] for k in ("task", "version", "fingerprint")})
+        say(f"resuming from the checkpoint of {checkpoint_mod.describe(found)}")
+    plans_mod.check_writable(directory)
+    checkpointer = checkpoint_mod.Checkpointer(directory, meta, every_s=every_s,
+                                               resume_hint=resume_hint, say=say)
+    return checkpointer, snap
+
+
 def solve(
     task: Task | Problem, config: Mapping[str, Any] | SolveConfig | None = None, *,
-    seed: int = 0, progress: bool | None = None,
+    seed: int = 0, progress: bool | None = None, checkpoint_dir: str | Path | None = None,
+    resume: bool = False, checkpoint_every_s: float = 30.0, resume_hint: str = "",
 ) -> SolveResult:
     """Runs STAMP on a task, then decodes, verifies, repairs and groups the plans.
 
@@ -432,17 +464,30 @@ def solve(
       seed: makes the run reproducible.
       progress: True: tqdm bar and status lines on stderr; None: the bar on a
         terminal, status lines in any case; False: nothing.
+      checkpoint_dir: a results directory to write `checkpoint.npz` into
+        while STAMP runs (`mjstamp.checkpoint`): every `checkpoint_every_s`
+        seconds (0: every iteration) and on SIGINT / SIGTERM, after which the
+        solve raises `checkpoint.Interrupted`.
+      resume: continue from the checkpoint in `checkpoint_dir`; the same task,
+        settings and seed end with the same plans as a solve never stopped.
+      checkpoint_every_s: seconds between checkpoints.
+      resume_hint: the command that resumes, for the interrupt message.
 
     Returns:
       A `SolveResult`.
 
     Raises:
       MjstampError: an unknown or invalid setting, a declaration that is not
-        complete, or a scene no setting within budget makes faithful.
+        complete, a scene no setting within budget makes faithful, or a
+        checkpoint to resume that is missing, unreadable or of another solve.
+      checkpoint.Interrupted: SIGINT or SIGTERM while checkpointing (the
+        checkpoint is written).
     """
     problem = as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     say, clock = _say(progress), {"start": time.perf_counter()}
+    checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
+                                        checkpoint_every_s, resume_hint, say)
     theta0, screen = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
     clock["screen"] = time.perf_counter()
@@ -454,7 +499,9 @@ def solve(
     if calibration is not None:
         report.update(_check_mjx(problem, evaluate, theta0_np, calibration, cfg, say))
     clock["calibrate"] = time.perf_counter()
-    stamp = _run_stamp(problem, cfg, theta0, seed, progress)
+    with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
+        stamp = _run_stamp(problem, cfg, theta0, seed, progress, checkpointer=checkpointer,
+                           resume=snap)
     clock["stamp"] = time.perf_counter()
     say("decoding and verifying in MuJoCo C")
     theta = np.asarray(stamp.particles, np.float64)

@@ -31,6 +31,7 @@ from mjstamp.svgd.kernels import Kernel
 from mjstamp.svgd.steps import (
     LogDensityFn,
     StepInfo,
+    SVGDState,
     build_dsvgd_step,
     build_sgd_step,
     build_svgd_step,
@@ -43,6 +44,7 @@ __all__ = [
     "PHASE_SGD",
     "PHASE_SVGD",
     "IterationRecord",
+    "LoopSnapshot",
     "StampConfig",
     "StampDiagnostics",
     "StampResult",
@@ -321,6 +323,39 @@ class IterationRecord(NamedTuple):
     nonfinite_redrawn: Any
 
 
+class LoopSnapshot(NamedTuple):
+    """Everything `run_stamp` needs to continue a run after an iteration (host values).
+
+    A checkpoint holds one (`run_stamp(checkpoint=...)` hands them out,
+    `run_stamp(resume=...)` continues from one); continuing gives the same
+    iterations, bit for bit, as a run never stopped (the steps are
+    deterministic and every PRNG key comes from `key_data`).
+
+    Attributes:
+      phase: PHASE_SVGD or PHASE_SGD, the phase of the last iteration done.
+      iteration: iterations done in that phase (>= 1).
+      particles: (n, d) particles after it.
+      opt_leaves: the leaves of that phase's optimizer state
+        (`jax.tree.leaves`), in order; the tree comes from `init`.
+      key_data: `jax.random.key_data` of the loop's PRNG key.
+      rows: the `IterationRecord` of every iteration so far, both phases.
+      svgd_particles: (n, d) particles at the end of SVGD; None in SVGD.
+      svgd_converged: whether SVGD ended by the convergence test; None in SVGD.
+      counters: the re-draw counters ({"stalled", "rescued", "failing",
+        "nonfinite_redrawn"}: (n,) ints each).
+    """
+
+    phase: int
+    iteration: int
+    particles: np.ndarray
+    opt_leaves: list
+    key_data: np.ndarray
+    rows: list
+    svgd_particles: np.ndarray | None
+    svgd_converged: bool | None
+    counters: dict
+
+
 # N.B. over 80 lines: 36 of them the docstring; the loop itself is `_Loop`.
 def run_stamp(
     logdensity_fn: LogDensityFn,
@@ -335,6 +370,8 @@ def run_stamp(
     progress: bool | None = None,
     jit: Callable[[Callable, Any, jax.Array, str], Callable] | None = None,
     redraw: Callable[[jax.Array, int], jax.Array] | None = None,
+    checkpoint: Callable[[Callable[[], LoopSnapshot]], None] | None = None,
+    resume: LoopSnapshot | None = None,
 ) -> StampResult:
     """Runs STAMP: (discrete) SVGD until converged, then SGD until converged.
 
@@ -365,6 +402,11 @@ def run_stamp(
         (`config.rescue_window`) and the persistently non-finite ones
         (`config.nonfinite_redraw`), e.g. draws from the prior; required when
         rescue is on.
+      checkpoint: called after every iteration with a function that returns
+        the `LoopSnapshot` of that moment; it decides whether to build and
+        keep one (say every 30 s) and may raise to stop the run.
+      resume: a `LoopSnapshot` of a run with the same arguments: the run
+        continues after its iteration instead of starting afresh.
 
     Returns:
       `StampResult`.
@@ -396,16 +438,27 @@ def run_stamp(
     tty = sys.stderr.isatty()
     show = tty if progress is None else bool(progress)
     loop = _Loop(key, config, jit, n=particles.shape[0], show=show,
-                 lines=progress is None and not tty, redraw=redraw)
+                 lines=progress is None and not tty, redraw=redraw, checkpoint=checkpoint)
+    if resume is not None:
+        loop.restore(resume, particles.shape)
+    resumed_sgd = resume is not None and resume.phase == PHASE_SGD
     with loop.bar:  # closed on the way out, also when a phase raises
-        svgd, svgd_converged = loop.run_phase(
-            PHASE_SVGD, svgd_step, init(particles, svgd_optimizer), config.svgd_max_iters
-        )
-        svgd_iters = len(loop.rows)
+        if resumed_sgd:
+            svgd = SVGDState(jnp.asarray(resume.svgd_particles), None)
+            svgd_converged = bool(resume.svgd_converged)
+            svgd_iters = int(np.sum([r.phase == PHASE_SVGD for r in loop.rows]))
+        else:
+            svgd, svgd_converged = loop.run_phase(
+                PHASE_SVGD, svgd_step, init(particles, svgd_optimizer), config.svgd_max_iters,
+                resume=resume,
+            )
+            svgd_iters = len(loop.rows)
+        loop.svgd_end = (np.asarray(svgd.particles), svgd_converged)
         loop.bar.total = svgd_iters + config.sgd_max_iters
         loop.bar.refresh()
         state, sgd_converged = loop.run_phase(
-            PHASE_SGD, sgd_step, init(svgd.particles, sgd_optimizer), config.sgd_max_iters
+            PHASE_SGD, sgd_step, init(svgd.particles, sgd_optimizer), config.sgd_max_iters,
+            resume=resume if resumed_sgd else None,
         )
     return StampResult(
         particles=state.particles, svgd_particles=svgd.particles,
@@ -439,9 +492,11 @@ class _Loop:
 
     def __init__(
         self, key: jax.Array, config: StampConfig, jit, *, n: int, show: bool, lines: bool,
-        redraw=None,
+        redraw=None, checkpoint=None,
     ):
         self.key = key
+        self.checkpoint = checkpoint
+        self.svgd_end = (None, None)  # (particles, converged) once SVGD is over
         self.rescue = _Rescue(config.rescue_window, redraw, n,
                               nonfinite_window=config.nonfinite_redraw)
         self.config = config
@@ -460,22 +515,75 @@ class _Loop:
         )
         self.rows: list[IterationRecord] = []
 
+    def snapshot(self, phase: int, t: int, state) -> LoopSnapshot:
+        """The `LoopSnapshot` after iteration t of `phase` (fetches the state to the host)."""
+        particles, leaves, key_data = jax.device_get(
+            (state.particles, jax.tree.leaves(state.opt_state), jax.random.key_data(self.key))
+        )
+        r = self.rescue
+        return LoopSnapshot(
+            phase=phase, iteration=t, particles=np.asarray(particles),
+            opt_leaves=[np.asarray(leaf) for leaf in leaves], key_data=np.asarray(key_data),
+            rows=list(self.rows), svgd_particles=self.svgd_end[0],
+            svgd_converged=self.svgd_end[1],
+            counters={"stalled": r.stalled.copy(), "rescued": r.counts.copy(),
+                      "failing": r.failing.copy(), "nonfinite_redrawn": r.nonfinite_counts.copy()},
+        )
+
+    def restore(self, snap: LoopSnapshot, shape: tuple[int, int]) -> None:
+        """Takes the key, records and counters of a snapshot (its state: `run_phase`)."""
+        if not isinstance(snap, LoopSnapshot):
+            raise ValueError(f"resume must be a LoopSnapshot; got {type(snap).__name__}")
+        if snap.phase not in (PHASE_SVGD, PHASE_SGD) or np.shape(snap.particles) != shape:
+            raise ValueError(f"resume: a snapshot of phase {snap.phase} with particles "
+                             f"{np.shape(snap.particles)} cannot continue a run of {shape}")
+        self.key = jax.random.wrap_key_data(jnp.asarray(snap.key_data))
+        self.rows = list(snap.rows)
+        r = self.rescue
+        r.stalled, r.counts = (np.array(snap.counters[k]) for k in ("stalled", "rescued"))
+        r.failing = np.array(snap.counters["failing"])
+        r.nonfinite_counts = np.array(snap.counters["nonfinite_redrawn"])
+        self.bar.update(len(self.rows))
+
     def _split(self) -> jax.Array:
         """A fresh subkey; the loop's key moves on."""
         self.key, sub = jax.random.split(self.key)
         return sub
 
-    def run_phase(self, phase: int, step, state, max_iters: int):
-        """Runs `step` until the convergence test passes or `max_iters`; (state, converged)."""
+    def run_phase(self, phase: int, step, state, max_iters: int, *, resume=None):
+        """Runs `step` until the convergence test passes or `max_iters`; (state, converged).
+
+        With `resume` (a `LoopSnapshot` of this phase), continues after its
+        iteration from its particles and optimizer state.
+        """
         if max_iters == 0:  # nothing to run: compile nothing either
             return state, False
         name = "svgd" if phase == PHASE_SVGD else "sgd"
+        # N.B. compiled for the fresh state's shapes and dtypes, which a snapshot shares.
         step = jax.jit(step) if self.jit is None else self.jit(step, state, self.key, name)
-        means, moves = [], []
-        threshold = None  # near-zero score norm, fixed at the phase's first iteration
+        done = [r for r in self.rows if r.phase == phase] if resume is not None else []
+        means = [float(r.logdensity_mean) for r in done]
+        moves = [float(r.displacement) for r in done]
+        # Near-zero score norm, fixed at the phase's first iteration.
+        threshold = float(done[0].near_zero_threshold) if done else None
+        if resume is not None:
+            leaves, tree = jax.tree.flatten(state.opt_state)
+            if len(leaves) != len(resume.opt_leaves):
+                raise ValueError(f"resume: {len(resume.opt_leaves)} optimizer-state leaves, "
+                                 f"this run's optimizer has {len(leaves)}")
+            opt_state = jax.tree.unflatten(tree, [
+                jnp.asarray(v, dtype=leaf.dtype) for v, leaf in zip(resume.opt_leaves, leaves,
+                                                                     strict=True)])
+            state = state._replace(particles=jnp.asarray(resume.particles, state.particles.dtype),
+                                   opt_state=opt_state)
+            self.say(f"{name.upper()}: resumed after iteration {resume.iteration}")
+            if self._converged(means, moves):  # the order of the loop's own exits
+                return state, True
+            if resume.iteration >= max_iters:
+                return state, False
         every = max(1, max_iters // 10)
         self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
-        for t in range(1, max_iters + 1):
+        for t in range(len(done) + 1, max_iters + 1):
             started = time.perf_counter()
             self.key, sub = jax.random.split(self.key)
             state, info = step(state, sub)
@@ -513,16 +621,16 @@ class _Loop:
             if t == 1 or t % every == 0 or t == max_iters:
                 self.say(f"{name.upper()} {t}/{max_iters}: mean log density {means[-1]:.4g}, "
                          f"{row.step_seconds:.2f} s/it")
-            if has_converged(
-                means,
-                moves,
-                window=self.config.window,
-                rtol=self.config.rtol,
-                motion_tol=self.config.motion_tol,
-                min_iters=self.config.min_iters,
-            ):
+            if self.checkpoint is not None:
+                self.checkpoint(lambda t=t, state=state: self.snapshot(phase, t, state))
+            if self._converged(means, moves):
                 return state, True
         return state, False
+
+    def _converged(self, means, moves) -> bool:
+        c = self.config
+        return has_converged(means, moves, window=c.window, rtol=c.rtol,
+                             motion_tol=c.motion_tol, min_iters=c.min_iters)
 
 
 class _Rescue:

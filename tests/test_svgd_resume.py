@@ -1,0 +1,73 @@
+"""run_stamp continues from any LoopSnapshot exactly as a run never stopped."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjstamp.svgd import LoopSnapshot, StampConfig, rbf, run_stamp
+
+
+def _logp(x):
+    return -0.5 * jnp.sum((x - jnp.array([0.5, -0.2])) ** 2 / jnp.array([0.3, 0.8]), axis=1)
+
+
+def _redraw(key, k):
+    return jax.random.normal(key, (k, 2))
+
+
+CONFIG = StampConfig(svgd_max_iters=8, sgd_max_iters=6, min_iters=3, window=2, rtol=1e-9,
+                     motion_tol=1e-9, seed=4, rescue_window=2)
+X0 = jax.random.normal(jax.random.key(1), (6, 2)) * 3
+
+
+class _Stop(Exception):
+    pass
+
+
+def _run(**kwargs):
+    return run_stamp(_logp, X0, rbf(), CONFIG, progress=False, redraw=_redraw, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def straight():
+    snaps = []
+    result = _run(checkpoint=lambda make: snaps.append(make()))
+    return result, snaps
+
+
+def test_every_iteration_hands_out_a_snapshot(straight):
+    result, snaps = straight
+    assert len(snaps) == result.svgd_iters + result.sgd_iters == 14
+    assert [s.phase for s in snaps] == [0] * 8 + [1] * 6
+    assert all(isinstance(s, LoopSnapshot) for s in snaps)
+
+
+@pytest.mark.parametrize("stop_after", [1, 5, 8, 9, 13, 14])
+def test_resumed_runs_end_where_the_straight_run_ends(straight, stop_after):
+    """Stopped after any iteration (in SVGD, at the switch, in SGD, at the end), then resumed."""
+    result, _ = straight
+    kept = []
+
+    def stop(make):
+        kept.append(make())
+        if len(kept) == stop_after:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        _run(checkpoint=stop)
+    resumed = _run(resume=kept[-1])
+    np.testing.assert_array_equal(resumed.particles, result.particles)
+    np.testing.assert_array_equal(resumed.svgd_particles, result.svgd_particles)
+    assert (resumed.svgd_iters, resumed.sgd_iters) == (result.svgd_iters, result.sgd_iters)
+    np.testing.assert_array_equal(resumed.rescued, result.rescued)
+    for name in ("logdensity_mean", "displacement", "rescued", "phase"):
+        np.testing.assert_array_equal(getattr(resumed.diagnostics, name),
+                                      getattr(result.diagnostics, name))
+
+
+def test_a_snapshot_of_another_shape_is_refused(straight):
+    _, snaps = straight
+    bad = snaps[2]._replace(particles=np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="cannot continue"):
+        _run(resume=bad)
