@@ -79,7 +79,11 @@ def save(path: Path, snap: LoopSnapshot, meta: Mapping[str, Any]) -> None:
 
 def _open(out: str | Path) -> tuple[Path, Any]:
     path = Path(out) / FILENAME
-    if not path.is_file():
+    try:
+        present = path.is_file()
+    except OSError as e:  # a name too long, a path through a file
+        raise MjstampError(f"{str(out)[:200]!r} cannot be read: {e.strerror or e}") from None
+    if not present:
         raise MjstampError(f"{str(Path(out))!r} holds no {FILENAME} (no unfinished solve to "
                            "resume there)")
     try:

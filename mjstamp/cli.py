@@ -45,8 +45,10 @@ def _cmd_check(args) -> int:
         raise MjstampError(f"--tolerance={args.tolerance} must be > 0 (metres)")
     if args.horizon is not None and args.horizon < 1:
         raise MjstampError(f"--horizon={args.horizon} must be >= 1")
-    if args.particles < 1:
-        raise MjstampError(f"--particles={args.particles} must be >= 1")
+    from mjstamp.config import MAX_PARTICLES
+
+    if not 1 <= args.particles <= MAX_PARTICLES:
+        raise MjstampError(f"--particles={args.particles} must be in 1..{MAX_PARTICLES}")
     say = (lambda msg: print(f"[check] {msg}", file=sys.stderr)) if not args.quiet else None
     common = dict(particles=args.particles, seed=args.seed, tolerance=args.tolerance,
                   progress=say)
@@ -315,6 +317,19 @@ def _add_task_contributions(sub, solve) -> None:
             parser.set_defaults(func=command.run)
 
 
+def _seed(text: str) -> int:
+    """A --seed value: an integer in 0 .. 2**63 - 1 (what JAX's and NumPy's PRNGs take)."""
+    from mjstamp.solve import MAX_SEED
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid seed {text!r}: expected an integer") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"seed {value} must be in 0..{MAX_SEED}")
+    return value
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its errors on one line (`mjstamp solve: error: ...`), exit status 2."""
 
@@ -338,7 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("scene", help="registered task (its own particles and horizon), "
                        "shipped scene or MJCF path (every joint's initial velocity varied)")
     check.add_argument("--particles", type=int, default=256, help="random particles")
-    check.add_argument("--seed", type=int, default=0)
+    check.add_argument("--seed", type=_seed, default=0)
     check.add_argument(
         "--precision",
         choices=("float64", "float32"),
@@ -361,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     solve = sub.add_parser("solve", help="find diverse task and motion plans for a task")
     solve.add_argument("task", help="registered task name (see `mjstamp tasks`)")
     solve.add_argument("--particles", type=int, default=None, help="particles (plans) to move")
-    solve.add_argument("--seed", type=int, default=0)
+    solve.add_argument("--seed", type=_seed, default=0)
     solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here "
                        "(and, while STAMP runs, checkpoint.npz)")
     solve.add_argument("--resume", metavar="DIR", help="continue the unfinished solve whose "
@@ -411,13 +426,20 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the `mjstamp` console script."""
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0), or argparse's one-line error (2)
+        return e.code if isinstance(e.code, int) else 2
     args.argv = argv
     try:
         configure_jax(precision=getattr(args, "precision", "float64"))
         return args.func(args)
     except MjstampError as e:
         print(f"mjstamp: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # N.B. a last resort: a path the checks above did not foresee
+        where = f"{str(e.filename)[:200]!r}: " if e.filename else ""
+        print(f"mjstamp: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:
         print(f"mjstamp: interrupted{f' ({e})' if str(e) else ''}", file=sys.stderr)

@@ -16,6 +16,9 @@ from typing import Any
 
 from mjstamp.errors import MjstampError, valid_list
 
+#: Most particles a solve takes: the n x n kernel of 65536 in float64 is 32 GiB.
+MAX_PARTICLES = 65536
+
 
 @dataclasses.dataclass(frozen=True)
 class SolveConfig:
@@ -108,6 +111,12 @@ class SolveConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
                 raise MjstampError(f"solve setting {name}={value!r} must be an integer >= {low}")
+        if self.particles > MAX_PARTICLES:
+            raise MjstampError(
+                f"solve setting particles={self.particles} must be at most {MAX_PARTICLES}: the "
+                f"n x n kernel of {self.particles} particles needs "
+                f"{self.particles**2 * 8 / 2**30:.3g} GiB in float64"
+            )
         positive = ("svgd_step", "sgd_step", "rtol")
         optional = ("motion_tol", "svgd_learning_rate", "sgd_learning_rate", "fidelity_tolerance")
         for name in positive + optional:

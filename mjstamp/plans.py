@@ -532,7 +532,12 @@ def _checkpoint_task(checkpoint: Path) -> object:
 def _read_summary(path: Path) -> dict:
     """plans.json, parsed and checked: one MjstampError line for any damage."""
     plans = path / "plans.json"
-    if not plans.is_file():
+    try:
+        complete = plans.is_file()
+    except OSError as e:  # a name too long, a path through a file
+        raise MjstampError(f"results directory {str(path)[:200]!r} cannot be read: "
+                           f"{e.strerror or e}") from None
+    if not complete:
         checkpoint = path / "checkpoint.npz"
         if checkpoint.is_file():
             task = _task_word(_checkpoint_task(checkpoint))

@@ -37,7 +37,12 @@ from mjstamp.scenes import fidelity
 from mjstamp.tasks import Problem, Task
 from mjstamp.tracecache import cached_jit
 
-__all__ = ["SolveConfig", "SolveResult", "as_problem", "calibrate", "problem_jit", "solve"]
+__all__ = ["MAX_SEED", "SolveConfig", "SolveResult", "as_problem", "calibrate", "problem_jit",
+           "solve"]
+
+
+#: The largest seed: JAX's PRNG keys take a signed 64-bit integer, NumPy's non-negative ones.
+MAX_SEED = 2**63 - 1
 
 
 def as_problem(task: Task | Problem) -> Problem:
@@ -483,6 +488,8 @@ def solve(
       checkpoint.Interrupted: SIGINT or SIGTERM while checkpointing (the
         checkpoint is written).
     """
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise MjstampError(f"seed={seed!r} must be an integer in 0..{MAX_SEED}")
     problem = as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     say, clock = _say(progress), {"start": time.perf_counter()}

@@ -12,7 +12,7 @@ from mjstamp.cli import main
     [
         (["check", "nope"], "unknown scene 'nope'; valid: billiards, pushing"),
         (["check", "/nonexistent/scene.xml"], "/nonexistent/scene.xml: MJCF file not found"),
-        (["check", "billiards", "--particles", "0"], "--particles=0 must be >= 1"),
+        (["check", "billiards", "--particles", "0"], "--particles=0 must be in 1..65536"),
     ],
 )
 def test_bad_input_is_one_line_and_status_2(argv, expected, capsys):

@@ -153,7 +153,12 @@ def load(path: str | os.PathLike, *, fingerprint: str | None = None) -> SkillBan
       MjstampError: an unreadable file, another format, or a newer version.
     """
     path = Path(path)
-    if not path.is_file():
+    try:
+        present = path.is_file()
+    except OSError as e:  # a name too long, a path through a file
+        raise MjstampError(f"skill bank {str(path)[:200]!r} cannot be read: "
+                           f"{e.strerror or e}") from None
+    if not present:
         raise MissingSkillBank(f"skill bank {str(path)!r}: no such file")
     unreadable = f"skill bank {str(path)!r} is unreadable"
     fix = "delete or move it to refit"

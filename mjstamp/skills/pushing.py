@@ -46,6 +46,10 @@ NORMALS = np.array([[0.0, 1.0], [1.0, 0.0], [0.0, -1.0], [-1.0, 0.0]])
 DEFAULT_BANK = Path.home() / ".cache" / "mjstamp" / "skills" / "pushing.npz"
 
 
+#: Most steps of one part of a push (approach, push, settle): a minute at 5 ms.
+MAX_PART_STEPS = 12_000
+
+
 @dataclasses.dataclass(frozen=True)
 class PushSetup:
     """Geometry and timing of pushes in the pushing scene.
@@ -97,11 +101,19 @@ class PushSetup:
                 f"lift={lift} m must exceed the block's top plus the pusher "
                 f"radius, {half + radius:.3f} m"
             )
+        # N.B. each part's DMP is fitted from its steps + 1 samples: 2 per basis function.
+        fewest = 2 * dmp_config().n_basis - 1
         for name, value in (("approach_steps", approach_steps), ("push_steps", push_steps)):
-            if int(value) < 2:
-                raise MjstampError(f"{name}={value} must be >= 2 steps")
-        if int(settle_steps) < 0:
-            raise MjstampError(f"settle_steps={settle_steps} must be >= 0")
+            if int(value) > MAX_PART_STEPS:
+                raise MjstampError(f"{name}={value} must be <= {MAX_PART_STEPS} steps")
+            if int(value) < fewest:
+                raise MjstampError(
+                    f"{name}={value} must be >= {fewest} steps: its DMP skill "
+                    f"({dmp_config().n_basis} basis functions) is fitted from steps + 1 samples, "
+                    "two per basis function"
+                )
+        if not 0 <= int(settle_steps) <= MAX_PART_STEPS:
+            raise MjstampError(f"settle_steps={settle_steps} must be in 0..{MAX_PART_STEPS}")
         origin = m.body_pos[scene.body("pusher")].copy()
         q0 = m.qpos0
         block0 = (

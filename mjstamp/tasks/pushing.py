@@ -121,10 +121,14 @@ def _skills_command(args) -> int:
     return 0
 
 
+#: Most pushes a plan may have (4^K push sequences; the paper goes to 5).
+MAX_PUSHES = 10
+
+
 def _positive_pushes(text: str) -> int:
     k = int(text)
-    if k < 1:
-        raise MjstampError(f"--max-pushes={k} must be >= 1")
+    if not 1 <= k <= MAX_PUSHES:
+        raise MjstampError(f"--max-pushes={k} must be in 1..{MAX_PUSHES}")
     return k
 
 
@@ -257,8 +261,9 @@ def executed_sides(setup: skills.PushSetup, scene, *, pushes: int, min_travel: f
 def make(config: dict) -> Task:
     """Builds the pushing task from a config (see `default_config`)."""
     K = int(config["max_pushes"])
-    if K < 1:
-        raise MjstampError(f"task 'pushing': max_pushes={K} must be >= 1")
+    if not 1 <= K <= MAX_PUSHES:
+        raise MjstampError(f"task 'pushing': max_pushes={K} must be in 1..{MAX_PUSHES} (4^K "
+                           "push sequences)")
     lo = np.array([config["x_min"], config["y_min"]], float)
     hi = np.array([config["x_max"], config["y_max"]], float)
     if not np.all(hi > lo):

@@ -41,6 +41,9 @@ from mjstamp.tasks.declaration import (
 )
 from mjstamp.tasks.problem import Problem, Rollout, default_kernel
 
+#: Longest rollout a task may declare, in steps.
+MAX_HORIZON = 100_000
+
 
 class Task:
     """A TAMP problem declared on a Scene; see the module docstring.
@@ -73,8 +76,9 @@ class Task:
         settings: Mapping[str, Any] | None = None,
         extras: Mapping[str, Any] | None = None,
     ):
-        if int(horizon) < 1:
-            raise MjstampError(f"task {name!r}: horizon={horizon} must be >= 1")
+        if not 1 <= int(horizon) <= MAX_HORIZON:
+            raise MjstampError(f"task {name!r}: horizon={horizon} must be in 1..{MAX_HORIZON} "
+                               "steps (a rollout keeps every step for its gradient)")
         self.name = name
         self.scene = scene
         self.horizon = int(horizon)

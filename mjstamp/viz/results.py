@@ -72,7 +72,12 @@ def load_results(path: str | os.PathLike, *, task: str | None = None) -> Results
         naming the file, what is wrong and what to do).
     """
     path = Path(path)
-    if not path.exists():
+    try:
+        exists = path.exists()
+    except OSError as e:  # a name too long, a path through a file
+        raise MjstampError(f"results directory {str(path)[:200]!r} cannot be read: "
+                           f"{e.strerror or e}") from None
+    if not exists:
         raise MjstampError(f"results directory {str(path)!r} does not exist")
     if not path.is_dir():
         raise MjstampError(f"{str(path)!r} is not a directory (expected a results directory)")
