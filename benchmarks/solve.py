@@ -13,6 +13,15 @@ number of STAMP iterations, over the solve's wall time.
 
 Target on a 2-core CPU: warm wall time <= 60 s.
 
+With `--devices 1 2` (the default) each particle count is solved cold and
+warm once per device count (`mjstamp solve --devices K`, particles sharded
+over K host devices, `mjstamp.parallel`), and the output carries
+`shard_speedup` = warm STAMP seconds on 1 device / on the most devices, the
+process CPU share during STAMP (`stamp_cpu_share`: 2.0 keeps two cores busy),
+the compiles each solve did (`compiles`: count and seconds of those >= 0.5 s,
+the largest by function), and the median iteration times per phase (the
+profile that says where a ratio below target comes from).
+
 Pushing (`--task pushing --max-pushes 1 2 3 4 5`): the default solve for each
 K, one process each, using the user's persistent caches (a K met for the
 first time compiles). Reports each process's wall time, the solve's
@@ -22,7 +31,7 @@ first time compiles). Reports each process's wall time, the solve's
 paper's Table III compares across K (runtime nearly flat in K on a GPU).
 The ratio time(K=5) / time(K=1) is given for both.
 
-Usage: python benchmarks/solve.py [--json] [--particles N ...]
+Usage: python benchmarks/solve.py [--json] [--particles N ...] [--devices K ...]
        python benchmarks/solve.py --task pushing [--max-pushes 1 2 3 4 5] [--json]
 """
 
@@ -124,6 +133,43 @@ def _pushing(max_pushes: list[int], as_json: bool) -> dict:
     return {"rows": rows, **ratios}
 
 
+def _billiards_row(n: int | None, k: int) -> dict:
+    """Cold and warm default billiards solves with `n` particles over `k` devices."""
+    extra = ([] if n is None else ["--particles", str(n)]) + ["--devices", str(k)]
+    with tempfile.TemporaryDirectory() as cache:
+        cold_wall, cold = _run_solve(cache, extra)
+        warm_wall, warm = _run_solve(cache, extra)
+    particles = warm["particles"]
+    svgd_s, sgd_s = _rollout_seconds_per_iteration(particles)
+    iters = warm["stamp"]
+    rollout_s = iters["svgd_iters"] * svgd_s + iters["sgd_iters"] * sgd_s
+    return {
+        "requested_particles": n,
+        "particles": particles,
+        "devices": k,
+        "cold_process_wall_s": cold_wall,
+        "cold_solve_wall_time_s": cold["wall_time_s"],
+        "cold_compiles": cold.get("compiles"),
+        "warm_process_wall_s": warm_wall,
+        "warm_solve_wall_time_s": warm["wall_time_s"],
+        "warm_timings": warm["timings"],
+        "warm_compiles": warm.get("compiles"),
+        "warm_iteration_seconds": warm["iteration_seconds"],
+        "stamp_cpu_share": warm["timings"].get("stamp_cpu_share"),
+        "svgd_iters": iters["svgd_iters"],
+        "sgd_iters": iters["sgd_iters"],
+        "rollout_and_gradient_s_per_svgd_iter": svgd_s,
+        "rollout_and_gradient_s_per_sgd_iter": sgd_s,
+        "rollout_and_gradient_share": rollout_s / warm["wall_time_s"],
+        "distinct_verified_codes": warm["distinct_verified_codes"],
+        "distinct_verified_task_plans": warm["distinct_verified_task_plans"],
+        "verified_plans": warm["verified_plans"],
+        "verified_fraction": warm["verified_fraction"],
+        "coverage": warm.get("coverage"),
+        "target_warm_s": 60.0,
+    }
+
+
 def main() -> None:
     """Runs the benchmark and prints its figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -133,6 +179,8 @@ def main() -> None:
                         help="billiards: particle counts (default: the task's default)")
     parser.add_argument("--max-pushes", type=int, nargs="*", default=[1, 2, 3, 4, 5],
                         help="pushing: values of K")
+    parser.add_argument("--devices", type=int, nargs="*", default=[1, 2],
+                        help="billiards: device counts to shard the particles over")
     args = parser.parse_args()
     if args.task == "pushing":
         import jax
@@ -144,39 +192,28 @@ def main() -> None:
         return
     rows = []
     for n in args.particles:
-        extra = [] if n is None else ["--particles", str(n)]
-        with tempfile.TemporaryDirectory() as cache:
-            cold_wall, cold = _run_solve(cache, extra)
-            warm_wall, warm = _run_solve(cache, extra)
-        particles = warm["particles"]
-        svgd_s, sgd_s = _rollout_seconds_per_iteration(particles)
-        iters = warm["stamp"]
-        rollout_s = iters["svgd_iters"] * svgd_s + iters["sgd_iters"] * sgd_s
-        row = {
-            "particles": particles,
-            "cold_process_wall_s": cold_wall,
-            "cold_solve_wall_time_s": cold["wall_time_s"],
-            "warm_process_wall_s": warm_wall,
-            "warm_solve_wall_time_s": warm["wall_time_s"],
-            "warm_timings": warm["timings"],
-            "svgd_iters": iters["svgd_iters"],
-            "sgd_iters": iters["sgd_iters"],
-            "rollout_and_gradient_s_per_svgd_iter": svgd_s,
-            "rollout_and_gradient_s_per_sgd_iter": sgd_s,
-            "rollout_and_gradient_share": rollout_s / warm["wall_time_s"],
-            "distinct_verified_codes": warm["distinct_verified_codes"],
-            "distinct_verified_task_plans": warm["distinct_verified_task_plans"],
-            "verified_fraction": warm["verified_fraction"],
-            "coverage": warm.get("coverage"),
-            "target_warm_s": 60.0,
-        }
-        rows.append(row)
-        if not args.json:
-            print(json.dumps(row, indent=1), flush=True)
+        for k in args.devices:
+            rows.append(_billiards_row(n, k))
+            if not args.json:
+                print(json.dumps(rows[-1], indent=1), flush=True)
+    speedups = {}
+    for n in args.particles:
+        same = [r for r in rows if r["requested_particles"] == n]
+        one = [r for r in same if r["devices"] == 1]
+        most = max(same, key=lambda r: r["devices"])
+        if one and most["devices"] > 1:
+            speedups[str(most["particles"])] = {
+                "devices": most["devices"],
+                "shard_speedup": one[0]["warm_timings"]["stamp_s"]
+                / most["warm_timings"]["stamp_s"],
+                "warm_solve_speedup": one[0]["warm_solve_wall_time_s"]
+                / most["warm_solve_wall_time_s"],
+            }
     import jax
 
     result = {"benchmark": "solve", "task": "billiards", "device": str(jax.devices()[0]),
-              "cpus": os.cpu_count(), "rows": rows}
+              "cpus": os.cpu_count(), "rows": rows, "shard_speedup": speedups,
+              "target_shard_speedup": 1.8}
     if args.json:
         print(json.dumps(result))
 

@@ -30,7 +30,8 @@ __version__ = "0.1.0"
 DEFAULT_CACHE = Path.home() / ".cache" / "mjstamp" / "jax"
 
 
-def configure(*, precision: str = "float64", compilation_cache: bool = True) -> None:
+def configure(*, precision: str = "float64", compilation_cache: bool = True,
+              devices: int | None = None) -> None:
     """Process-wide JAX settings: precision and the persistent compilation cache.
 
     N.B. float64 is the default precision: float32 reverse-mode gradients
@@ -43,11 +44,18 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True) -> 
     Args:
       precision: "float64" or "float32".
       compilation_cache: turn on JAX's persistent compilation cache.
+      devices: on a CPU, ask XLA for this many host devices (one per core is
+        what `solve`'s `devices` setting shards particles over); must come
+        before JAX starts (the first array). None leaves XLA's default (1).
     """
     from mjstamp.errors import MjstampError  # noqa: PLC0415
 
     if precision not in ("float64", "float32"):
         raise MjstampError(f"precision={precision!r} is not valid; valid: float64, float32")
+    if devices is not None:
+        from mjstamp.parallel import request_host_devices  # noqa: PLC0415
+
+        request_host_devices(devices)
     import jax  # noqa: PLC0415 - importing mjstamp must not import JAX's backends
 
     jax.config.update("jax_enable_x64", precision == "float64")

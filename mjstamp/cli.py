@@ -14,11 +14,39 @@ import sys
 from mjstamp.errors import MjstampError
 
 
-def configure_jax(*, precision: str = "float64") -> None:
-    """The CLI's JAX settings: `mjstamp.configure` (float64, compilation cache)."""
+def configure_jax(*, precision: str = "float64", devices: int | None = None) -> None:
+    """The CLI's JAX settings: `mjstamp.configure` (float64, compilation cache, devices)."""
     import mjstamp
 
-    mjstamp.configure(precision=precision)
+    mjstamp.configure(precision=precision, devices=devices)
+
+
+def _devices(text: str) -> int | str:
+    """A --devices value: a count >= 1, or 'auto'."""
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid device count {text!r}: expected an integer "
+                                         ">= 1 or 'auto'") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"device count {value} must be >= 1")
+    return value
+
+
+def _host_devices(requested) -> int | None:
+    """How many host devices to ask XLA for: N, or for 'auto' one per core (at most 8)."""
+    if requested is None:
+        return None
+    cores = os.cpu_count() or 1
+    if requested == "auto":
+        return max(1, min(cores, 8))
+    if requested > cores:
+        # N.B. XLA makes as many host devices as asked; more than cores only slows.
+        raise MjstampError(f"--devices {requested}: this machine has {cores} CPU cores "
+                           f"(host devices: at most {cores})")
+    return requested
 
 
 def _load_scene(name: str, **kwargs):
@@ -240,6 +268,14 @@ def _cmd_solve(args) -> int:
         if args.particles < 2:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
         overrides["particles"] = args.particles
+    if args.devices is not None:
+        import jax
+
+        from mjstamp.parallel import check_devices
+
+        k = len(jax.devices()) if args.devices == "auto" else args.devices
+        check_devices(k)
+        overrides["devices"] = k
     out, resume = _results_dir(args)
     if out:
         plans.check_writable(out)
@@ -387,6 +423,10 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("--json", action="store_true", help="print one JSON object")
     solve.add_argument("--set", action="append", metavar="KEY=VALUE",
                        help="override a task setting (repeatable)")
+    solve.add_argument("--devices", type=_devices, default="auto", metavar="N",
+                       help="shard the particles over N devices: CPU host devices (one per "
+                       "core) or local GPUs; 'auto' (default): every one (CPU: one per core, "
+                       "at most 8)")
     solve.add_argument("--no-coverage", action="store_true",
                        help="skip the ground-truth sweep behind the coverage figure")
     solve.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -432,7 +472,8 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else 2
     args.argv = argv
     try:
-        configure_jax(precision=getattr(args, "precision", "float64"))
+        configure_jax(precision=getattr(args, "precision", "float64"),
+                      devices=_host_devices(getattr(args, "devices", None)))
         return args.func(args)
     except MjstampError as e:
         print(f"mjstamp: error: {e}", file=sys.stderr)

@@ -74,6 +74,9 @@ class SolveConfig:
         not finite is frozen for the iteration and left out of the kernel of
         the others; after this many such iterations in a row (>= 1; 0: never)
         it is re-drawn from the prior (`svgd.StampConfig.nonfinite_redraw`).
+      devices: shard the particles' rollouts over this many devices
+        (`mjstamp.parallel`): host devices on a CPU (`mjstamp.configure(devices=N)`
+        first), local GPUs on a GPU machine; the plans do not depend on it.
     """
 
     particles: int = 128
@@ -99,12 +102,13 @@ class SolveConfig:
     keep_visited: bool = True
     rescue_window: int = 0
     nonfinite_redraw: int = 3
+    devices: int = 1
 
     def __post_init__(self):
         ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
                 "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
                 "repair_samples": 1, "screen": 1, "rescue_window": 0,
-                "nonfinite_redraw": 0}
+                "nonfinite_redraw": 0, "devices": 1}
         for name, low in ints.items():
             value = getattr(self, name)
             if value is None and name == "max_solver_iterations":

@@ -29,8 +29,8 @@ import numpy as np
 import optax
 
 from mjstamp import checkpoint as checkpoint_mod
+from mjstamp import parallel, seeding, svgd
 from mjstamp import plans as plans_mod
-from mjstamp import seeding, svgd
 from mjstamp.config import SolveConfig
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import fidelity
@@ -110,6 +110,8 @@ class SolveResult:
       rescue: with `SolveConfig.rescue_window` on, the re-draws and the
         task-plan counts (C replays) of the initial and final particles; None
         when off.
+      compiles: the XLA compiles the solve did (`_Compiles.report`: count and
+        seconds of those >= 0.5 s, the largest by function).
     """
 
     problem: Problem
@@ -131,6 +133,7 @@ class SolveResult:
     screen: dict | None
     source: np.ndarray
     rescue: dict | None = None
+    compiles: dict | None = None
 
     @property
     def task(self) -> Problem:
@@ -158,6 +161,7 @@ class SolveResult:
             "seed": int(self.config["seed"]),
             "wall_time_s": self.timings["total_s"],
             "timings": self.timings,
+            "compiles": self.compiles,
             "returned_plans": int(self.returned.sum()),
             "verified_plans": int(ok.sum()),
             "repaired_plans": int((self.repaired & ok).sum()),
@@ -416,8 +420,14 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
         discrete = {"log_target_fn": lambda th: problem.log_target(th)[0],
                     "sgd_logdensity_fn": problem.sgd_logdensity}
     jit = problem_jit(problem)
+    logdensity = parallel.shard_particles(problem.logdensity, cfg.devices)
+    if discrete:
+        target = parallel.shard_particles(problem.log_target, cfg.devices)
+        discrete = {"log_target_fn": lambda th: target(th)[0],
+                    "sgd_logdensity_fn": parallel.shard_particles(problem.sgd_logdensity,
+                                                                  cfg.devices)}
     result = svgd.run_stamp(
-        problem.logdensity, theta0, problem.kernel, _stamp_config(cfg, problem, seed),
+        logdensity, theta0, problem.kernel, _stamp_config(cfg, problem, seed),
         svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),
         sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
         progress=progress,
@@ -488,10 +498,22 @@ def solve(
       checkpoint.Interrupted: SIGINT or SIGTERM while checkpointing (the
         checkpoint is written).
     """
+    with _Compiles() as compiles:
+        result = _solve(task, config, seed=seed, progress=progress,
+                        checkpoint_dir=checkpoint_dir, resume=resume,
+                        checkpoint_every_s=checkpoint_every_s, resume_hint=resume_hint)
+    result.compiles = compiles.report()
+    return result
+
+
+def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_every_s,
+           resume_hint) -> SolveResult:
+    """`solve`'s body."""
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
         raise MjstampError(f"seed={seed!r} must be an integer in 0..{MAX_SEED}")
     problem = as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
+    parallel.check_devices(cfg.devices)
     say, clock = _say(progress), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
                                         checkpoint_every_s, resume_hint, say)
@@ -506,10 +528,12 @@ def solve(
     if calibration is not None:
         report.update(_check_mjx(problem, evaluate, theta0_np, calibration, cfg, say))
     clock["calibrate"] = time.perf_counter()
+    cpu = time.process_time()
     with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
         stamp = _run_stamp(problem, cfg, theta0, seed, progress, checkpointer=checkpointer,
                            resume=snap)
     clock["stamp"] = time.perf_counter()
+    clock["stamp_cpu"] = time.process_time() - cpu
     say("decoding and verifying in MuJoCo C")
     theta = np.asarray(stamp.particles, np.float64)
     outcome = evaluate(theta)
@@ -540,9 +564,43 @@ def solve(
     )
 
 
+class _Compiles:
+    """XLA compiles of this process while active: (function, seconds) each (jax.monitoring)."""
+
+    _listening = False
+    _active: list = []
+
+    def __enter__(self):
+        if not _Compiles._listening:
+            from jax._src import dispatch, monitoring  # noqa: PLC0415 - the event's name
+
+            def listen(event, seconds, **kwargs):
+                if event == dispatch.BACKEND_COMPILE_EVENT:
+                    for log in _Compiles._active:
+                        log.append((str(kwargs.get("fun_name", "?")), float(seconds)))
+
+            monitoring.register_event_duration_secs_listener(listen)
+            _Compiles._listening = True
+        self.log: list[tuple[str, float]] = []
+        _Compiles._active.append(self.log)
+        return self
+
+    def __exit__(self, *exc):
+        _Compiles._active.remove(self.log)
+
+    def report(self, min_s: float = 0.5) -> dict:
+        """Compiles of at least `min_s` (the rollouts' and steps'; a cache hit takes less)."""
+        big = [(name, round(t, 2)) for name, t in self.log if t >= min_s]
+        return {"count": len(big), "seconds": round(sum(t for _, t in big), 2),
+                "all_count": len(self.log), "all_seconds": round(sum(t for _, t in self.log), 2),
+                "largest": sorted(big, key=lambda e: -e[1])[:8], "min_s": min_s}
+
+
 def _timings(clock: dict[str, float]) -> dict[str, float]:
     order = ["start", "screen", "calibrate", "stamp", "verify", "repair"]
     out = {f"{b}_s": clock[b] - clock[a] for a, b in zip(order, order[1:], strict=False)}
+    # Process CPU seconds over wall seconds of STAMP: 2.0 keeps two cores busy.
+    out["stamp_cpu_share"] = clock["stamp_cpu"] / max(out["stamp_s"], 1e-9)
     out["total_s"] = time.perf_counter() - clock["start"]
     return out
 

@@ -103,17 +103,25 @@ def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
         _write_atomic(path, payload)
     exported, out_tree = entry
     call = jax.jit(exported.call)
+    # N.B. a function sharded over k devices (`mjstamp.parallel`) is exported for k
+    # and must be called with its arguments on those k devices.
+    place = None
+    if exported.nr_devices > 1:
+        from mjstamp import parallel  # noqa: PLC0415
+
+        place = parallel.replicated(parallel.particle_mesh(exported.nr_devices))
 
     def cached(*args):
         xs = jax.tree_util.tree_leaves(args)
-        xs = [jax.random.key_data(x) if k else _strong(x) for x, k in zip(xs, is_key, strict=True)]
+        xs = [jax.random.key_data(x) if k else x for x, k in zip(xs, is_key, strict=True)]
+        xs = [_strong(x, place) for x in xs]
         return jax.tree_util.tree_unflatten(out_tree, call(*xs))
 
     return cached
 
 
-def _strong(x):
-    """X as a committed, strongly typed array: what the compiled step returns.
+def _strong(x, place=None):
+    """X as a committed, strongly typed array (on the sharding `place` when given).
 
     N.B. `jax.jit` keys its cache on weak types (a Python-scalar-born array,
     e.g. optax's injected ε) and on whether an argument is committed to a
@@ -122,7 +130,10 @@ def _strong(x):
     """
     if getattr(x, "weak_type", False):
         x = jax.numpy.asarray(x, dtype=x.dtype)
-    if not getattr(x, "committed", False):
+    if place is not None:
+        if getattr(x, "sharding", None) != place:
+            x = jax.device_put(x, place)
+    elif not getattr(x, "committed", False):
         x = jax.device_put(x, jax.devices()[0])
     return x
 

@@ -38,7 +38,7 @@ except KeyboardInterrupt as e:
 r.save(out, figures=False)
 """
 
-VOLATILE = ("wall_time_s", "timings", "iteration_seconds")
+VOLATILE = ("wall_time_s", "timings", "iteration_seconds", "compiles")
 
 
 def _stable(out: Path) -> dict:
