@@ -101,7 +101,8 @@ def _parameterisation(scene: Scene, spec: CheckSpec) -> Particles:
     qpos0, qvel0 = scene.initial_state()
     T = spec.horizon
     if spec.qvel_joints or not spec.ctrl_segments:
-        joints = spec.qvel_joints or scene.names("joint")
+        # N.B. by id: a hand-written scene often leaves its joints unnamed.
+        joints = spec.qvel_joints or range(m.njnt)
         dofs = np.array([scene.dof_adr(j) for j in joints], dtype=int)
     else:
         dofs = np.zeros(0, dtype=int)

@@ -5,7 +5,8 @@
 pair that the model collides but MJX has no collision function for (a
 cylinder puck against box rails), a margin on a mesh or height-field pair, an
 integrator or option flag MJX lacks. ``mjx.make_data`` (first called at the
-first rollout) refuses condim-1 contacts with the elliptic cone.
+first rollout) refuses condim-1 contacts with the elliptic cone, and
+``mjx.step`` the discrete integrator, which ``put_model`` lets through.
 `check_collidable` finds these before either runs and raises one line naming
 the geoms, the file and what would work instead.
 
@@ -86,7 +87,7 @@ def _no_collider(m: mujoco.MjModel, label: str, g1: int, g2: int, ip: int) -> st
     fixes = []
     for g, others in ((g1, p2), (g2, p1)):
         movable = [t for t in others if t not in ("plane", "hfield")]
-        if movable:
+        if movable and _type_name(m.geom_type[g]) not in ("plane", "hfield"):
             fixes.append(f"make {_geom(m, g)} a {_or(movable)}")
             own = _type_name(m.geom_type[g])
             if "mesh" in movable and own in ("ellipsoid", "cylinder"):
@@ -117,7 +118,11 @@ def _check_options(m: mujoco.MjModel, label: str) -> None:
     """The option refusals of mjx.put_model (io._put_option), as one line."""
     _, mjx_types = _mjx_src()
     o = m.opt
-    if o.integrator not in set(mjx_types.IntegratorType):
+    # N.B. put_model accepts every mjx IntegratorType, DISCRETE included, but
+    # mjx.step only integrates these three: a discrete model failed at the first step.
+    stepped = {mjx_types.IntegratorType.EULER, mjx_types.IntegratorType.RK4,
+               mjx_types.IntegratorType.IMPLICITFAST}
+    if o.integrator not in stepped:
         name = mujoco.mjtIntegrator(o.integrator).name.removeprefix("mjINT_").lower()
         raise MjstampError(
             f"{label}: <option integrator={name!r}> is not supported by {_MJX}; valid: "
@@ -194,8 +199,8 @@ def _check_elements(m: mujoco.MjModel, label: str) -> None:
 def check_collidable(m: mujoco.MjModel, label: str) -> None:
     """Raises one line if MJX 3.17 cannot build or collide the model.
 
-    Checks, in this order, what ``mjx.put_model`` and ``mjx.make_data`` would
-    refuse: options (integrator, enable flags, fluid forces with
+    Checks, in this order, what ``mjx.put_model``, ``mjx.make_data`` and
+    ``mjx.step`` would refuse: options (integrator, enable flags, fluid forces with
     implicitfast), elements (flex, some contact sensors, actuator, equality,
     sensor and wrap types), then every geom pair the model collides: that MJX
     has a collision function for its types, that a mesh or height-field pair

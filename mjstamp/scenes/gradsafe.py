@@ -37,6 +37,12 @@ what ``checkify`` flags first though) and are patched defensively:
    ``safe_div``.
 4. ``_update_constraint`` L327 (elliptic cones): ``force / (t + ...)`` where
    ``t`` may be tiny in the cone's middle zone. Replaced by ``safe_div``.
+5. ``constraint._kbi`` L85 (any cone, any precision): the impedance's upper
+   branch ``jp.power(1 - imp_x, power)`` is formed, then discarded by a
+   ``where``, for rows deeper than the solimp width (``imp_x > 1``), where its
+   base is negative: with a non-integer power (``solimp="... 1.5"``) its JVP
+   coefficient is NaN. Found by ``benchmarks/fuzz.py`` (random solimp). The
+   base is clamped at 0, which changes only the discarded values.
 
 The rewrite is applied to the source text of the installed functions and each
 target expression must be found exactly once, so an MJX upgrade that changes
@@ -199,6 +205,19 @@ _EDITS: dict[str, list[tuple[str, str]]] = {
     ],
 }
 
+# The same, in ``mujoco.mjx._src.constraint``.
+_CONSTRAINT_EDITS: dict[str, list[tuple[str, str]]] = {
+    "_kbi": [
+        # Culprit 5: impedance past the solimp width, a negative base to a
+        # fractional power. N.B. `where(imp_x > 1.0, dmax, imp)` below discards
+        # every value the clamp changes, so the forward pass is unchanged.
+        (
+            "jp.power(1 - imp_x, power)",
+            "jp.power(jp.maximum(1 - imp_x, 0.0), power)",
+        ),
+    ],
+}
+
 
 def _rewrite(module, qualname: str, edits: list[tuple[str, str]]) -> Callable:
     """Returns a copy of ``module.<qualname>`` with textual edits applied."""
@@ -318,10 +337,12 @@ def patch_mjx() -> None:
     global _PATCHED
     if _PATCHED:
         return
-    from mujoco.mjx._src import solver  # pylint: disable=g-import-not-at-top
+    from mujoco.mjx._src import constraint, solver  # pylint: disable=g-import-not-at-top
 
     # Build everything first so a failed rewrite leaves MJX untouched.
     new = {q: _rewrite(solver, q, e) for q, e in _EDITS.items()}
+    kbi = _rewrite(constraint, "_kbi", _CONSTRAINT_EDITS["_kbi"])
+    constraint._kbi = kbi  # pylint: disable=protected-access
     solver._linesearch = new["_linesearch"]  # pylint: disable=protected-access
     solver._update_constraint = new["_update_constraint"]  # pylint: disable=protected-access
     solver._LSPoint.create = classmethod(new["_LSPoint.create"])  # pylint: disable=protected-access

@@ -1,0 +1,604 @@
+"""Fuzzed inputs: random valid MJCF scenes through `Scene` and `mjstamp check`.
+
+In the spirit of MJX's `test_util.create_mjcf`: random kinematic trees of
+bodies with every joint type (free, ball, slide, hinge), every geom type
+MuJoCo collides (plane and height field in the worldbody only; sphere,
+capsule, ellipsoid, cylinder, box, and meshes as inline `<mesh vertex=...>`
+assets), random sizes, masses, poses, contact settings (friction, solref,
+solimp, condim, contype/conaffinity, margin, priority, `<pair>`, `<exclude>`),
+options (timestep, integrator, solver, cone, gravity, iterations, fluid, flags)
+and sometimes motor or position actuators on hinge and slide joints. Every
+scene compiles in MuJoCo C; some use what MJX 3.17 lacks (an integrator, a
+geom pair, a margin on a mesh), which mjstamp must refuse in one line.
+
+Outcomes, per scene:
+
+- ok: `Scene(path)` builds (and, when checked, `mjstamp check` exits 0);
+- rejected: an `MjstampError`, i.e. `mjstamp check` exits 2 with exactly one
+  line `mjstamp: error: ...` on stderr;
+- unhealthy: `mjstamp check` exits 1 (a legitimate verdict on a scene);
+- crash: any other exception, a traceback on stderr, or a rejection that is
+  not one line.
+
+Usage: python -m benchmarks.fuzz --scenes N [--check K] [--seed S] [--json]
+(`--print-scene I` prints scene I's MJCF for seed S, to reproduce an example).
+Scene i of seed S is `scene_mjcf(S, i)`. The CLI's own arguments will be fuzzed
+by a `cli` section of this file; each section is one function returning a dict,
+and `main` merges them into one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+# Geom types a body may carry; planes and height fields are static ground only.
+BODY_GEOMS = ("sphere", "capsule", "ellipsoid", "cylinder", "box", "mesh")
+# "implicit" and "discrete" compile in MuJoCo C but are not stepped by MJX 3.17.
+INTEGRATORS = ("Euler", "RK4", "implicitfast", "implicit", "discrete")
+CONDIMS = (1, 3, 4, 6)
+# Option flags a scene may flip: (attribute, value).
+FLAGS = (
+    ("contact", "disable"), ("gravity", "disable"), ("warmstart", "disable"),
+    ("filterparent", "disable"), ("frictionloss", "disable"), ("limit", "disable"),
+    ("actuation", "disable"), ("energy", "enable"), ("sleep", "enable"),
+)
+CHECK_ARGS = ("--particles", "4", "--horizon", "20", "--json")
+OUTCOMES = ("ok", "rejected", "unhealthy", "crash")
+
+
+def _fmt(values) -> str:
+    return " ".join(f"{float(v):.4g}" for v in np.atleast_1d(values))
+
+
+def _p(rng: np.random.Generator, prob: float) -> bool:
+    return bool(rng.random() < prob)
+
+
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / max(np.linalg.norm(v), 1e-9)
+
+
+def _axis(rng: np.random.Generator) -> str:
+    """A coordinate axis mostly (as scenes are written), else a random unit vector."""
+    if _p(rng, 0.6):
+        return ("1 0 0", "0 1 0", "0 0 1")[rng.integers(3)]
+    return _fmt(_unit(rng))
+
+
+def _contact_attrs(rng: np.random.Generator) -> dict[str, str]:
+    """Random contact settings of a geom (each present or left at its default)."""
+    a = {}
+    if _p(rng, 0.5):
+        a["friction"] = _fmt([rng.uniform(0, 2), rng.uniform(0, 0.05), rng.uniform(0, 0.01)]
+                             [: rng.integers(1, 4)])
+    if _p(rng, 0.4):
+        if _p(rng, 0.5):
+            a["solref"] = _fmt([rng.uniform(0.002, 0.1), rng.uniform(0.1, 2)])
+        else:  # direct stiffness and damping
+            a["solref"] = _fmt([-rng.uniform(100, 1e5), -rng.uniform(1, 500)])
+    if _p(rng, 0.3):
+        dmin = rng.uniform(0.5, 0.95)
+        a["solimp"] = _fmt([dmin, rng.uniform(dmin, 0.9999), rng.uniform(1e-4, 0.05),
+                            rng.uniform(0.1, 0.9), rng.uniform(1, 6)])
+    if _p(rng, 0.5):
+        a["condim"] = str(CONDIMS[rng.integers(len(CONDIMS))])
+    if _p(rng, 0.5):
+        a["contype"] = str(rng.integers(0, 4))
+        a["conaffinity"] = str(rng.integers(0, 4))
+    if _p(rng, 0.1):
+        a["margin"] = _fmt(rng.uniform(0.001, 0.02))
+    if _p(rng, 0.05):
+        a["gap"] = _fmt(rng.uniform(0, 0.005))
+    if _p(rng, 0.1):
+        a["priority"] = str(rng.integers(0, 3))
+    return a
+
+
+class _Builder:
+    """Builds one random scene; names count up so messages can name things."""
+
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self.root = ET.Element("mujoco", model="fuzz")
+        ET.SubElement(self.root, "compiler", autolimits="true", angle="radian")
+        self.option = ET.SubElement(self.root, "option")
+        self.asset = ET.SubElement(self.root, "asset")
+        self.world = ET.SubElement(self.root, "worldbody")
+        self.geoms: list[tuple[str, str | None]] = []  # (geom name, body name)
+        self.bodies: list[str] = []
+        self.joints: list[tuple[str, str]] = []  # (joint name, type)
+        self.meshes = 0
+        self.hfields = 0
+        # One palette per scene, so some scenes stay within what MJX collides.
+        k = rng.integers(1, len(BODY_GEOMS) + 1)
+        self.palette = tuple(rng.choice(BODY_GEOMS, size=k, replace=False))
+
+    def options(self) -> None:
+        rng, o = self.rng, self.option
+        o.set("timestep", _fmt(rng.choice([0.002, 0.005, 0.01, 0.02]) * rng.uniform(0.5, 1)))
+        weights = np.array([0.35, 0.2, 0.3, 0.1, 0.05])
+        o.set("integrator", INTEGRATORS[rng.choice(len(INTEGRATORS), p=weights)])
+        o.set("solver", ("PGS", "CG", "Newton")[rng.integers(3)])
+        o.set("iterations", str(rng.integers(1, 60)))
+        o.set("ls_iterations", str(rng.integers(1, 30)))
+        if _p(rng, 0.3):
+            o.set("cone", "elliptic")
+        if _p(rng, 0.3):
+            o.set("gravity", _fmt(rng.normal(0, 1, 3) + [0, 0, -rng.uniform(0, 12)]))
+        if _p(rng, 0.2):
+            o.set("tolerance", _fmt(10.0 ** rng.uniform(-10, -4)))
+        if _p(rng, 0.08):
+            o.set("density", _fmt(rng.uniform(0.5, 1.5)))
+            o.set("viscosity", _fmt(rng.uniform(0, 2e-5)))
+        if _p(rng, 0.05):
+            o.set("wind", _fmt(rng.normal(0, 1, 3)))
+        if _p(rng, 0.05):
+            o.set("noslip_iterations", str(rng.integers(1, 5)))
+        if _p(rng, 0.25):
+            flag = ET.SubElement(o, "flag")
+            for i in rng.choice(len(FLAGS), size=rng.integers(1, 3), replace=False):
+                flag.set(*FLAGS[i])
+        if _p(rng, 0.3):
+            default = ET.SubElement(ET.SubElement(self.root, "default"), "geom")
+            for key, value in _contact_attrs(rng).items():
+                default.set(key, value)
+
+    def mesh(self, scale: float) -> str:
+        """An inline convex-ish point cloud: MuJoCo collides its convex hull."""
+        rng = self.rng
+        name = f"mesh{self.meshes}"
+        self.meshes += 1
+        n = rng.integers(5, 21)
+        radii = scale * rng.uniform(0.4, 1.0, 3)
+        points = np.stack([_unit(rng) for _ in range(n)]) * radii
+        attrs = {"name": name, "vertex": _fmt(points.ravel())}
+        if _p(rng, 0.15):
+            attrs["scale"] = _fmt(rng.uniform(0.5, 1.5, 3))
+        ET.SubElement(self.asset, "mesh", attrs)
+        return name
+
+    def hfield(self) -> str:
+        rng = self.rng
+        name = f"hfield{self.hfields}"
+        self.hfields += 1
+        nrow, ncol = rng.integers(2, 7, 2)
+        size = [rng.uniform(0.3, 2), rng.uniform(0.3, 2), rng.uniform(0.01, 0.3),
+                rng.uniform(0.01, 0.2)]
+        ET.SubElement(self.asset, "hfield", name=name, nrow=str(nrow), ncol=str(ncol),
+                      size=_fmt(size), elevation=_fmt(rng.uniform(0, 1, nrow * ncol)))
+        return name
+
+    def geom(self, parent: ET.Element, kind: str, body: str | None) -> None:
+        rng = self.rng
+        name = f"geom{len(self.geoms)}"
+        self.geoms.append((name, body))
+        s = rng.uniform(0.02, 0.25)
+        a = {"name": name, "type": kind}
+        if kind == "sphere":
+            a["size"] = _fmt(s)
+        elif kind in ("capsule", "cylinder"):
+            if _p(rng, 0.2):
+                a["fromto"] = _fmt(np.concatenate([rng.uniform(-s, s, 3), rng.uniform(-s, s, 3)]))
+                a["size"] = _fmt(s * rng.uniform(0.1, 0.5))
+            else:
+                a["size"] = _fmt([s * rng.uniform(0.2, 1), s * rng.uniform(0.2, 2)])
+        elif kind in ("ellipsoid", "box"):
+            a["size"] = _fmt(s * rng.uniform(0.2, 1.5, 3))
+        elif kind == "mesh":
+            a["mesh"] = self.mesh(s)
+        elif kind == "plane":
+            a["size"] = _fmt([rng.uniform(0.5, 5), rng.uniform(0.5, 5), 0.1]
+                             if _p(rng, 0.8) else [0, 0, 1])
+        elif kind == "hfield":
+            a["hfield"] = self.hfield()
+        if "fromto" not in a and _p(rng, 0.5):
+            a["pos"] = _fmt(rng.uniform(-0.1, 0.1, 3))
+        if "fromto" not in a and kind != "plane" and _p(rng, 0.4):
+            a["euler"] = _fmt(rng.uniform(-np.pi, np.pi, 3))
+        if body is not None:
+            if _p(rng, 0.4):
+                a["mass"] = _fmt(rng.uniform(0.05, 5))
+            elif _p(rng, 0.3):
+                a["density"] = _fmt(rng.uniform(100, 5000))
+        a.update(_contact_attrs(rng))
+        ET.SubElement(parent, "geom", a)
+
+    def joint(self, body: ET.Element, kind: str) -> None:
+        rng = self.rng
+        name = f"joint{len(self.joints)}"
+        self.joints.append((name, kind))
+        a = {"name": name, "type": kind}
+        if kind in ("hinge", "slide"):
+            a["axis"] = _axis(rng)
+            if _p(rng, 0.4):
+                half = rng.uniform(0.1, 3) if kind == "hinge" else rng.uniform(0.05, 1)
+                a["range"] = _fmt([-half * rng.uniform(0.2, 1), half])
+            if _p(rng, 0.2):
+                a["stiffness"] = _fmt(rng.uniform(0, 50))
+        if kind == "ball" and _p(rng, 0.2):
+            a["range"] = _fmt([0, rng.uniform(0.2, 2)])
+        if kind != "free" and _p(rng, 0.3):
+            a["pos"] = _fmt(rng.uniform(-0.1, 0.1, 3))
+        for key, high, prob in (("damping", 2, 0.5), ("armature", 0.1, 0.3),
+                                ("frictionloss", 0.5, 0.1)):
+            if _p(rng, prob):
+                a[key] = _fmt(rng.uniform(0, high))
+        ET.SubElement(body, "joint", a)
+
+    def body(self, parent: ET.Element, depth: int, max_depth: int) -> None:
+        rng = self.rng
+        name = f"body{len(self.bodies)}"
+        self.bodies.append(name)
+        top = depth == 0
+        pos = rng.uniform(-0.5, 0.5, 3) + ([0, 0, rng.uniform(0.1, 1)] if top else 0)
+        a = {"name": name, "pos": _fmt(pos)}
+        if _p(rng, 0.3):
+            a["euler"] = _fmt(rng.uniform(-np.pi, np.pi, 3))
+        body = ET.SubElement(parent, "body", a)
+        # N.B. a free joint only on a child of the world, alone; a ball ends the stack.
+        if top and _p(rng, 0.4):
+            self.joint(body, "free")
+        else:
+            for _ in range(rng.integers(0, 4)):
+                kind = ("ball", "slide", "hinge")[rng.choice(3, p=[0.2, 0.35, 0.45])]
+                self.joint(body, kind)
+                if kind == "ball":
+                    break
+        if _p(rng, 0.1):
+            ET.SubElement(body, "inertial", pos=_fmt(rng.uniform(-0.05, 0.05, 3)),
+                          mass=_fmt(rng.uniform(0.1, 2)),
+                          diaginertia=_fmt(rng.uniform(1e-3, 1e-2) * rng.uniform(0.6, 1, 3)))
+        for _ in range(rng.integers(1, 3)):
+            self.geom(body, self.palette[rng.integers(len(self.palette))], name)
+        if _p(rng, 0.3):
+            ET.SubElement(body, "site", name=f"site_{name}", pos=_fmt(rng.uniform(-0.1, 0.1, 3)))
+        # N.B. small trees (chains, a fork now and then): MJX compile time grows with
+        # the bodies and the geom pairs, and `check` compiles each scene twice.
+        if depth + 1 < max_depth:
+            for _ in range(1 + _p(rng, 0.15)):
+                self.body(body, depth + 1, max_depth)
+
+    def worldbody(self) -> None:
+        rng = self.rng
+        if _p(rng, 0.7):
+            self.geom(self.world, "plane", None)
+            if _p(rng, 0.3):
+                self.world[-1].set("euler", _fmt(rng.uniform(-0.3, 0.3, 3)))
+        for _ in range(rng.integers(0, 3)):
+            kinds = self.palette + (("hfield",) if _p(rng, 0.3) else ())
+            self.geom(self.world, kinds[rng.integers(len(kinds))], None)
+        if _p(rng, 0.3):
+            ET.SubElement(self.world, "site", name="goal", pos=_fmt(rng.uniform(-1, 1, 3)),
+                          size=_fmt(rng.uniform(0.01, 0.1)))
+        for _ in range(1 + _p(rng, 0.4) + _p(rng, 0.1)):
+            self.body(self.world, 0, rng.integers(1, 4))
+
+    def contact(self) -> None:
+        rng = self.rng
+        contact = ET.Element("contact")
+        for _ in range(rng.integers(0, 3) if len(self.geoms) > 1 and _p(rng, 0.3) else 0):
+            i, j = rng.choice(len(self.geoms), size=2, replace=False)
+            a = {"geom1": self.geoms[i][0], "geom2": self.geoms[j][0]}
+            if _p(rng, 0.5):
+                a["condim"] = str(CONDIMS[rng.integers(len(CONDIMS))])
+            if _p(rng, 0.3):
+                a["friction"] = _fmt([rng.uniform(0, 2), rng.uniform(0, 2), 0.005, 1e-4,
+                                      1e-4])
+            if _p(rng, 0.2):
+                a["margin"] = _fmt(rng.uniform(0, 0.01))
+            ET.SubElement(contact, "pair", a)
+        if len(self.bodies) > 1 and _p(rng, 0.2):
+            i, j = rng.choice(len(self.bodies), size=2, replace=False)
+            ET.SubElement(contact, "exclude", body1=self.bodies[i], body2=self.bodies[j])
+        if len(contact):
+            self.root.append(contact)
+
+    def actuators(self) -> None:
+        rng = self.rng
+        joints = [name for name, kind in self.joints if kind in ("hinge", "slide")]
+        if not joints or not _p(rng, 0.4):
+            return
+        actuator = ET.SubElement(self.root, "actuator")
+        for j in rng.choice(joints, size=rng.integers(1, len(joints) + 1), replace=False):
+            a = {"name": f"act_{j}", "joint": str(j)}
+            if _p(rng, 0.5):
+                kind = "motor"
+                a["gear"] = _fmt(rng.uniform(0.1, 10))
+            else:
+                kind = "position"
+                a["kp"] = _fmt(rng.uniform(1, 100))
+                if _p(rng, 0.3):
+                    a["kv"] = _fmt(rng.uniform(0, 5))
+            if _p(rng, 0.6):
+                high = rng.uniform(0.1, 5)
+                a["ctrlrange"] = _fmt([-high, high])
+            if _p(rng, 0.2):
+                a["forcerange"] = _fmt([-rng.uniform(1, 50), rng.uniform(1, 50)])
+            ET.SubElement(actuator, kind, a)
+
+    def anonymise(self) -> None:
+        """Drops the names nothing refers to, as hand-written scenes often do."""
+        used = {v for e in self.root.iter() if e.tag in ("pair", "exclude", "position", "motor")
+                for k, v in e.attrib.items() if k in ("geom1", "geom2", "body1", "body2", "joint")}
+        for e in self.root.iter():
+            if e.tag in ("geom", "joint", "body") and e.get("name") not in used:
+                e.attrib.pop("name", None)
+
+    def build(self) -> str:
+        self.options()
+        self.worldbody()
+        self.contact()
+        self.actuators()
+        if _p(self.rng, 0.2):
+            self.anonymise()
+        if not len(self.asset):
+            self.root.remove(self.asset)
+        ET.indent(self.root)
+        return ET.tostring(self.root, encoding="unicode")
+
+
+def random_mjcf(rng: np.random.Generator) -> str:
+    """A random MJCF scene that MuJoCo C compiles (MJX may not support all of it).
+
+    Args:
+      rng: the source of randomness; the same state gives the same scene.
+
+    Returns:
+      The MJCF XML text, with meshes and height fields inline (no files).
+    """
+    return _Builder(rng).build()
+
+
+def scene_mjcf(seed: int, index: int) -> str:
+    """Scene `index` of a fuzz run with `seed`: `random_mjcf` on rng (seed, index)."""
+    return random_mjcf(np.random.default_rng([seed, index]))
+
+
+def mjcf_scenes():
+    """A hypothesis strategy of `random_mjcf` scenes, one per 64-bit seed."""
+    from hypothesis import strategies as st  # a test extra: only the tests import this
+
+    return st.integers(0, 2**64 - 1).map(lambda s: random_mjcf(np.random.default_rng(s)))
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def build_scene(path: str | Path) -> tuple[str, str, bool]:
+    """Builds `Scene(path)` in-process; returns (outcome, message, traceback).
+
+    The outcome is "ok", "rejected" (an `MjstampError` of one line) or "crash"
+    (any other exception, or an `MjstampError` spanning several lines);
+    traceback is whether an exception other than `MjstampError` escaped, which
+    the CLI would print as a traceback.
+    """
+    from mjstamp.errors import MjstampError
+    from mjstamp.scenes import Scene
+
+    try:
+        scene = Scene(path)
+        scene.length_scale  # noqa: B018 - what check derives its tolerance from
+    except MjstampError as e:
+        if "\n" in str(e) or not str(e).strip():
+            return "crash", f"MjstampError not on one line: {str(e)!r}", False
+        return "rejected", str(e), False
+    except Exception as e:  # noqa: BLE001 - any other exception is what the fuzzer hunts
+        frame = traceback.extract_tb(e.__traceback__)[-1]
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        return "crash", f"{type(e).__name__} at {where}: {_one_line(e)}", True
+    return "ok", "", False
+
+
+def classify_check(code: int, stdout: str, stderr: str) -> tuple[str, str, bool]:
+    """Classifies one `mjstamp check --json` run; returns (outcome, message, traceback).
+
+    Exit 0 or 1 must print one JSON object on stdout; exit 2 one line
+    `mjstamp: error: ...`, the last on stderr; no exit may leave a traceback.
+    """
+    if "Traceback" in stderr:
+        lines = [ln for ln in stderr.strip().splitlines() if ln.strip()]
+        return "crash", f"traceback on stderr: {_one_line(lines[-1])}", True
+    if code in (0, 1):
+        try:
+            report = json.loads(stdout)
+        except ValueError:
+            return "crash", f"exit {code} without one JSON object on stdout", False
+        if code == 0:
+            return "ok", "", False
+        return "unhealthy", "; ".join(report.get("problems", [])), False
+    # N.B. stderr also holds `check`'s status lines, MuJoCo C's warnings and XLA's
+    # logs; what `main` prints last is the error, so a message spilling onto
+    # more lines shows as lines after the one that starts "mjstamp: error: ".
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    errors = [k for k, ln in enumerate(lines) if ln.startswith("mjstamp: error: ")]
+    if code == 2:
+        if len(errors) == 1 and errors[0] == len(lines) - 1:
+            return "rejected", lines[-1], False
+        tail = lines[errors[0]:] if errors else lines[-3:]
+        return "crash", f"exit 2 without a one-line error last on stderr: {tail[:3]!r}", False
+    return "crash", f"exit {code}: {_one_line(' / '.join(lines[-3:]))}", False
+
+
+class _Echo(io.StringIO):
+    """Captured stderr that passes `check`'s status lines on to `stream` as well."""
+
+    def __init__(self, stream):
+        super().__init__()
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        if self._stream is not None and text.startswith("[check] "):
+            self._stream.write(f"[fuzz]   {text.rstrip()}\n")
+            self._stream.flush()
+        return super().write(text)
+
+
+def check_in_process(path: str | Path, *, echo: bool = False) -> tuple[str, str, bool]:
+    """`mjstamp.cli.main(["check", path, ...])` in-process, stdout and stderr captured.
+
+    An exception escaping `main` is what would print a traceback in a shell.
+    `echo` passes the check's status lines on to this process's stderr.
+    """
+    from mjstamp.cli import main
+
+    out, err = io.StringIO(), _Echo(sys.stderr if echo else None)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(["check", str(path), *CHECK_ARGS])
+    except Exception as e:  # noqa: BLE001 - the crash the fuzzer hunts
+        frame = traceback.extract_tb(e.__traceback__)[-1]
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        return "crash", f"traceback: {type(e).__name__} at {where}: {_one_line(e)}", True
+    return classify_check(code, out.getvalue(), err.getvalue())
+
+
+def check_subprocess(path: str | Path, *, timeout: float = 1800) -> tuple[str, str, bool]:
+    """The `mjstamp` console script of this interpreter on `path`, as a user runs it.
+
+    A check of 4 particles over 20 steps that runs past `timeout` counts as a crash.
+    """
+    script = Path(sys.executable).with_name("mjstamp")
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "mjstamp.cli"]
+    try:
+        proc = subprocess.run([*cmd, "check", str(path), *CHECK_ARGS], capture_output=True,
+                              text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return "crash", f"mjstamp check ran past {timeout:g} s", False
+    return classify_check(proc.returncode, proc.stdout, proc.stderr)
+
+
+def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, seed: int = 0,
+                examples: int = 5, progress=None) -> dict:
+    """Tries `n` random scenes through `Scene`, the first `check` through `mjstamp check`.
+
+    Args:
+      n: scenes to build in-process (cheap: no compilation).
+      check: of those, how many (the first ones) also go through `mjstamp check
+        --particles 4 --horizon 20 --json` (each compiles MJX rollouts: tens of
+        seconds to minutes on a CPU).
+      subprocesses: of the checked scenes, how many (the first ones) run the
+        `mjstamp` console script in a subprocess instead of `cli.main` in-process.
+      seed: scene i is `scene_mjcf(seed, i)`.
+      examples: how many crash messages to keep.
+      progress: callable(str) for status lines, or None.
+
+    Returns:
+      A JSON-ready dict: scenes_tried, scenes_checked, crashes, tracebacks
+      (crashes where an exception escaped: a traceback in a shell),
+      one_line_rejections, outcomes ({outcome: count} over the scenes, a
+      checked scene counted by its check), scene_outcomes (the `Scene` pass
+      alone), examples ([{seed, index, stage, message}]), checked (the verdict
+      of each checked scene: [{index, via, outcome, message, wall_s}]) and wall_s.
+    """
+    say = progress or (lambda _: None)
+    t0 = time.perf_counter()
+    final = {k: 0 for k in OUTCOMES}
+    built = {k: 0 for k in ("ok", "rejected", "crash")}
+    crashes = tracebacks = rejections = checked = 0
+    kept: list[dict] = []
+    verdicts: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="mjstamp-fuzz-") as tmp:
+        for i in range(n):
+            path = Path(tmp) / f"scene_{seed}_{i}.xml"
+            path.write_text(scene_mjcf(seed, i))
+            outcome, message, had_tb = build_scene(path)
+            built[outcome] += 1
+            stage = "Scene"
+            if i < check:
+                via = "subprocess" if i < subprocesses else "in-process"
+                say(f"scene {i}: Scene {outcome}; mjstamp check ({via})")
+                stage, t1 = f"check ({via})", time.perf_counter()
+                if i < subprocesses:
+                    c_outcome, c_message, c_tb = check_subprocess(path)
+                else:
+                    c_outcome, c_message, c_tb = check_in_process(path, echo=progress is not None)
+                checked += 1
+                if outcome == "crash" and c_outcome != "crash":
+                    # The CLI got past what crashed in-process: keep the Scene's crash.
+                    stage = "Scene"
+                else:
+                    outcome, message, had_tb = c_outcome, c_message, c_tb
+                verdicts.append({"index": i, "via": via, "outcome": c_outcome,
+                                 "message": c_message.replace(tmp + "/", "")[:400],
+                                 "wall_s": round(time.perf_counter() - t1, 1)})
+            final[outcome] += 1
+            rejections += outcome == "rejected"
+            tracebacks += had_tb
+            if outcome == "crash":
+                crashes += 1
+                if len(kept) < examples:
+                    kept.append({"seed": seed, "index": i, "stage": stage,
+                                 "message": message.replace(tmp + "/", "")})
+            if outcome in ("crash", "rejected", "unhealthy") and i < check:
+                say(f"scene {i}: {outcome}: {message[:200]}")
+            if (i + 1) % 50 == 0 or i + 1 == n:
+                say(f"{i + 1}/{n} scenes: {final}")
+    return {
+        "scenes_tried": n,
+        "scenes_checked": checked,
+        "crashes": crashes,
+        "tracebacks": tracebacks,
+        "one_line_rejections": rejections,
+        "outcomes": final,
+        "scene_outcomes": built,
+        "examples": kept,
+        "checked": verdicts,
+        "seed": seed,
+        "check_args": list(CHECK_ARGS),
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Runs the fuzz sections and prints their merged report; exit 1 on any crash."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", type=int, default=100, help="random scenes to build")
+    parser.add_argument("--check", type=int, default=0,
+                        help="of those, how many also go through `mjstamp check`")
+    parser.add_argument("--subprocess", type=int, default=2, dest="subprocesses",
+                        help="of the checked, how many via the console script")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    parser.add_argument("--print-scene", type=int, metavar="I",
+                        help="print scene I's MJCF for --seed and exit")
+    args = parser.parse_args(argv)
+    if args.print_scene is not None:
+        print(scene_mjcf(args.seed, args.print_scene))
+        return 0
+    if args.scenes < 0 or args.check < 0:
+        parser.error("--scenes and --check must be >= 0")
+
+    from mjstamp.cli import configure_jax
+
+    configure_jax()  # the CLI's settings, so in-process Scenes match what `check` builds
+
+    def say(msg: str) -> None:
+        print(f"[fuzz] {msg}", file=sys.stderr, flush=True)
+
+    report = {"benchmark": "fuzz"}
+    report.update(fuzz_scenes(args.scenes, check=min(args.check, args.scenes),
+                              subprocesses=args.subprocesses, seed=args.seed, progress=say))
+    if args.json:
+        print(json.dumps(report, indent=1))
+    else:
+        for key, value in report.items():
+            print(f"{key:20} {value}")
+    return 1 if report["crashes"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
