@@ -31,7 +31,7 @@ DEFAULT_CACHE = Path.home() / ".cache" / "mjstamp" / "jax"
 
 
 def configure(*, precision: str = "float64", compilation_cache: bool = True,
-              devices: int | None = None) -> None:
+              devices: int | None = None, strict_devices: bool = True) -> None:
     """Process-wide JAX settings: precision and the persistent compilation cache.
 
     N.B. float64 is the default precision: float32 reverse-mode gradients
@@ -47,6 +47,8 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
       devices: on a CPU, ask XLA for this many host devices (one per core is
         what `solve`'s `devices` setting shards particles over); must come
         before JAX starts (the first array). None leaves XLA's default (1).
+      strict_devices: when JAX already runs with fewer devices, raise (True)
+        or keep them (False).
     """
     from mjstamp.errors import MjstampError  # noqa: PLC0415
 
@@ -55,7 +57,7 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
     if devices is not None:
         from mjstamp.parallel import request_host_devices  # noqa: PLC0415
 
-        request_host_devices(devices)
+        request_host_devices(devices, strict=strict_devices)
     import jax  # noqa: PLC0415 - importing mjstamp must not import JAX's backends
 
     jax.config.update("jax_enable_x64", precision == "float64")

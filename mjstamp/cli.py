@@ -14,11 +14,12 @@ import sys
 from mjstamp.errors import MjstampError
 
 
-def configure_jax(*, precision: str = "float64", devices: int | None = None) -> None:
+def configure_jax(*, precision: str = "float64", devices: int | None = None,
+                  strict_devices: bool = True) -> None:
     """The CLI's JAX settings: `mjstamp.configure` (float64, compilation cache, devices)."""
     import mjstamp
 
-    mjstamp.configure(precision=precision, devices=devices)
+    mjstamp.configure(precision=precision, devices=devices, strict_devices=strict_devices)
 
 
 def _devices(text: str) -> int | str:
@@ -473,7 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     try:
         configure_jax(precision=getattr(args, "precision", "float64"),
-                      devices=_host_devices(getattr(args, "devices", None)))
+                      devices=_host_devices(getattr(args, "devices", None)),
+                      strict_devices=getattr(args, "devices", None) != "auto")
         return args.func(args)
     except MjstampError as e:
         print(f"mjstamp: error: {e}", file=sys.stderr)

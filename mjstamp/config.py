@@ -76,7 +76,8 @@ class SolveConfig:
         it is re-drawn from the prior (`svgd.StampConfig.nonfinite_redraw`).
       devices: shard the particles' rollouts over this many devices
         (`mjstamp.parallel`): host devices on a CPU (`mjstamp.configure(devices=N)`
-        first), local GPUs on a GPU machine; the plans do not depend on it.
+        first), local GPUs on a GPU machine; None: every device JAX sees. The
+        plans do not depend on it beyond rounding (see the README).
     """
 
     particles: int = 128
@@ -102,7 +103,7 @@ class SolveConfig:
     keep_visited: bool = True
     rescue_window: int = 0
     nonfinite_redraw: int = 3
-    devices: int = 1
+    devices: int | None = None
 
     def __post_init__(self):
         ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
@@ -111,7 +112,7 @@ class SolveConfig:
                 "nonfinite_redraw": 0, "devices": 1}
         for name, low in ints.items():
             value = getattr(self, name)
-            if value is None and name == "max_solver_iterations":
+            if value is None and name in ("max_solver_iterations", "devices"):
                 continue
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
                 raise MjstampError(f"solve setting {name}={value!r} must be an integer >= {low}")

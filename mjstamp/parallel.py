@@ -38,19 +38,25 @@ AXIS = "particles"
 _FLAG = "--xla_force_host_platform_device_count"
 
 
-def request_host_devices(n: int) -> None:
+def request_host_devices(n: int, *, strict: bool = True) -> None:
     """Asks XLA for n CPU host devices; only possible before JAX's backends start.
+
+    Args:
+      n: host devices wanted.
+      strict: when JAX already runs with fewer devices, raise (True) or keep
+        what it has (False: the CLI's `--devices auto` called from a running
+        Python session, a test or a notebook).
 
     Raises:
       MjstampError: n is not a positive integer, or JAX already runs with
-        fewer devices (the flag is read once, when the first array is made).
+        fewer devices and `strict` (the flag is read once, at JAX's start).
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise MjstampError(f"devices={n!r} must be an integer >= 1")
     from jax._src import xla_bridge  # noqa: PLC0415 - the only way to ask without starting it
 
     if xla_bridge.backends_are_initialized():
-        if jax.device_count() < n:
+        if strict and jax.device_count() < n:
             raise MjstampError(
                 f"devices={n}: JAX already runs with {jax.device_count()} "
                 f"{jax.default_backend()} device(s); ask for host devices before JAX starts "

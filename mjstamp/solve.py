@@ -110,6 +110,7 @@ class SolveResult:
       rescue: with `SolveConfig.rescue_window` on, the re-draws and the
         task-plan counts (C replays) of the initial and final particles; None
         when off.
+      devices: how many devices the particles were sharded over.
       compiles: the XLA compiles the solve did (`_Compiles.report`: count and
         seconds of those >= 0.5 s, the largest by function).
     """
@@ -134,6 +135,7 @@ class SolveResult:
     source: np.ndarray
     rescue: dict | None = None
     compiles: dict | None = None
+    devices: int = 1
 
     @property
     def task(self) -> Problem:
@@ -158,6 +160,7 @@ class SolveResult:
         out = {
             "task": self.problem.name,
             "particles": int(self.theta.shape[0]),
+            "devices": self.devices,
             "seed": int(self.config["seed"]),
             "wall_time_s": self.timings["total_s"],
             "timings": self.timings,
@@ -410,7 +413,7 @@ def _check_mjx(problem: Problem, evaluate: _Evaluator, theta0: np.ndarray, calib
 
 
 def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, *,
-               checkpointer=None, resume=None):
+               devices: int = 1, checkpointer=None, resume=None):
     widths = _box_widths(problem)
     discrete = {}
     if problem.has_actions:
@@ -420,18 +423,19 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
         discrete = {"log_target_fn": lambda th: problem.log_target(th)[0],
                     "sgd_logdensity_fn": problem.sgd_logdensity}
     jit = problem_jit(problem)
-    logdensity = parallel.shard_particles(problem.logdensity, cfg.devices)
+    logdensity = parallel.shard_particles(problem.logdensity, devices)
     if discrete:
-        target = parallel.shard_particles(problem.log_target, cfg.devices)
+        target = parallel.shard_particles(problem.log_target, devices)
         discrete = {"log_target_fn": lambda th: target(th)[0],
                     "sgd_logdensity_fn": parallel.shard_particles(problem.sgd_logdensity,
-                                                                  cfg.devices)}
+                                                                  devices)}
     result = svgd.run_stamp(
         logdensity, theta0, problem.kernel, _stamp_config(cfg, problem, seed),
         svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),
         sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
         progress=progress,
-        jit=lambda step, state, key, phase: jit(step, f"stamp-{phase} {cfg}", state, key),
+        jit=lambda step, state, key, phase: jit(step, f"stamp-{phase} {cfg} on {devices}",
+                                                state, key),
         redraw=problem.init,
         checkpoint=checkpointer, resume=resume,
         **discrete,
@@ -513,7 +517,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         raise MjstampError(f"seed={seed!r} must be an integer in 0..{MAX_SEED}")
     problem = as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
-    parallel.check_devices(cfg.devices)
+    devices = cfg.devices or jax.device_count()
+    parallel.check_devices(devices)
     say, clock = _say(progress), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
                                         checkpoint_every_s, resume_hint, say)
@@ -530,8 +535,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     clock["calibrate"] = time.perf_counter()
     cpu = time.process_time()
     with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
-        stamp = _run_stamp(problem, cfg, theta0, seed, progress, checkpointer=checkpointer,
-                           resume=snap)
+        stamp = _run_stamp(problem, cfg, theta0, seed, progress, devices=devices,
+                           checkpointer=checkpointer, resume=snap)
     clock["stamp"] = time.perf_counter()
     clock["stamp_cpu"] = time.process_time() - cpu
     say("decoding and verifying in MuJoCo C")
@@ -560,7 +565,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
                              repaired),
         timings=_timings(clock), fidelity=report,
         screen=None if screen is None else screen.as_dict(), source=source,
-        rescue=_rescue_report(problem, cfg, stamp, theta0_np, outcome),
+        rescue=_rescue_report(problem, cfg, stamp, theta0_np, outcome), devices=devices,
     )
 
 
