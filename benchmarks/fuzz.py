@@ -20,7 +20,7 @@ Outcomes, per scene:
 - crash: any other exception, a traceback on stderr, or a rejection that is
   not one line.
 
-Usage: python -m benchmarks.fuzz --scenes N [--check K] [--seed S] [--json]
+Usage: python -m benchmarks.fuzz --scenes N [--check K] [--cli N] [--seed S] [--json]
 (`--print-scene I` prints scene I's MJCF for seed S, to reproduce an example).
 Scene i of seed S is `scene_mjcf(S, i)`. The CLI's own arguments will be fuzzed
 by a `cli` section of this file; each section is one function returning a dict,
@@ -571,6 +571,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="of those, how many also go through `mjstamp check`")
     parser.add_argument("--subprocess", type=int, default=2, dest="subprocesses",
                         help="of the checked, how many via the console script")
+    parser.add_argument("--cli", type=int, default=0, metavar="N",
+                        help="random command lines to try (benchmarks/fuzz_cli.py)")
+    parser.add_argument("--cli-subprocesses", type=int, default=20, metavar="K",
+                        help="of the rejected command lines, how many to rerun as processes")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", action="store_true", help="one JSON object on stdout")
     parser.add_argument("--print-scene", type=int, metavar="I",
@@ -592,6 +596,15 @@ def main(argv: list[str] | None = None) -> int:
     report = {"benchmark": "fuzz"}
     report.update(fuzz_scenes(args.scenes, check=min(args.check, args.scenes),
                               subprocesses=args.subprocesses, seed=args.seed, progress=say))
+    if args.cli:
+        from benchmarks.fuzz_cli import fuzz_cli  # noqa: PLC0415
+
+        cli = fuzz_cli(args.cli, seed=args.seed, subprocesses=args.cli_subprocesses, say=say)
+        report.update(cli)
+        # N.B. the totals cover both sections; scene_* and cli_* keep them apart.
+        report["crashes"] += cli["cli_crashes"]
+        report["tracebacks"] += cli["cli_tracebacks"]
+        report["one_line_rejections"] += cli["cli_one_line_rejections"]
     if args.json:
         print(json.dumps(report, indent=1))
     else:

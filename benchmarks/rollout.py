@@ -10,7 +10,11 @@ value-and-grad rollout: one with empty caches (cold) and one reusing them
 (`mjstamp.tracecache`). The issue's target is warm start-to-first-result within
 10 s.
 
-Usage: python benchmarks/rollout.py [--json] [--horizon 200] [--repeats 5]
+With `--devices K` (K host devices, one per core) the value-and-grad and
+forward rollouts are sharded over the particles (`mjstamp.parallel`), as a
+solve shards them; MuJoCo C uses every core either way.
+
+Usage: python benchmarks/rollout.py [--json] [--horizon 200] [--repeats 5] [--devices K]
 """
 
 from __future__ import annotations
@@ -39,19 +43,26 @@ def _setup(cache_dir: str | None):
     return jax
 
 
-def _functions(scene, horizon, example=None):
+def _functions(scene, horizon, example=None, devices=1):
     """Forward and value-and-grad rollouts; with `example`, via the trace cache."""
     import jax
     import jax.numpy as jnp
 
+    from mjstamp import parallel
     from mjstamp.tracecache import cached_jit
 
     rollout = scene.rollout_fn(horizon, fields=("qpos",))
     dofs = [scene.dof_adr("cue_x"), scene.dof_adr("cue_y")]
 
-    def final_qpos(qpos0, v):
+    def one_shard(qv):  # (n, nq + 2): initial positions and cue velocities side by side
+        qpos0, v = qv[:, :scene.m.nq], qv[:, scene.m.nq:]
         qvel0 = jnp.zeros((v.shape[0], scene.m.nv), v.dtype).at[:, dofs].set(v)
         return rollout(qpos0, qvel0)["qpos"]
+
+    sharded = parallel.shard_particles(one_shard, devices)
+
+    def final_qpos(qpos0, v):
+        return sharded(jnp.concatenate([qpos0, v], axis=1))
 
     loss = lambda q, v: jnp.sum(final_qpos(q, v)[:, -1] ** 2)  # noqa: E731
     value_and_grad = jax.value_and_grad(loss, argnums=1)
@@ -151,16 +162,22 @@ def main() -> None:
     parser.add_argument("--particles", type=int, nargs="*", default=list(PARTICLES))
     parser.add_argument("--probe", metavar="CACHE_DIR", help=argparse.SUPPRESS)
     parser.add_argument("--skip-compile", action="store_true", help="no cold/warm probes")
+    parser.add_argument("--devices", type=int, default=1,
+                        help="host devices to shard the MJX rollouts over")
     args = parser.parse_args()
     if args.probe:
         probe(args.probe, args.horizon)
         return
 
+    if args.devices > 1:
+        from mjstamp.parallel import request_host_devices
+
+        request_host_devices(args.devices)
     jax = _setup(None)
     from mjstamp.scenes import Scene
 
     scene = Scene.shipped("billiards")
-    forward, value_and_grad = _functions(scene, args.horizon)
+    forward, value_and_grad = _functions(scene, args.horizon, devices=args.devices)
     T = args.horizon
     rows = []
     for n in args.particles:
@@ -191,6 +208,7 @@ def main() -> None:
         "horizon": T,
         "precision": scene.precision,
         "device": str(jax.devices()[0]),
+        "devices": args.devices,
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
         "rows": rows,
     }
