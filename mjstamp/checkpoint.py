@@ -107,13 +107,17 @@ def read_meta(out: str | Path) -> dict:
     return meta
 
 
-def load(out: str | Path, *, expect: Mapping[str, Any]) -> tuple[dict, LoopSnapshot]:
+def load(out: str | Path, *, expect: Mapping[str, Any], settings: Mapping | None = None,
+         seed: int | None = None) -> tuple[dict, LoopSnapshot]:
     """(meta, snapshot) of the checkpoint in `out`, checked against `expect`.
 
     Args:
       out: the results directory.
       expect: {"task", "fingerprint", "version", ...}: what the resuming solve
         is; the first key that differs from the checkpoint's is named.
+      settings: the resuming solve's settings ({"task": ..., "solve": ...}) and
+      seed: its seed; with a fingerprint that differs, the message names the
+        first of them that changed.
 
     Raises:
       MjstampError: no checkpoint, an unreadable one, or one of another task,
@@ -125,6 +129,12 @@ def load(out: str | Path, *, expect: Mapping[str, Any]) -> tuple[dict, LoopSnaps
         if meta.get(key) != value:
             what = {"fingerprint": "declaration, scene, settings or seed",
                     "version": "mjstamp version"}.get(key, key)
+            changed = _first_change(meta, settings, seed)
+            if key == "fingerprint" and changed:
+                raise MjstampError(
+                    f"{str(path)!r} is a checkpoint of another solve: {changed}; run with the "
+                    "same task, settings and seed, or delete it to start afresh"
+                )
             raise MjstampError(
                 f"{str(path)!r} is a checkpoint of another {what} ({key} "
                 f"{meta.get(key)!r}, this solve: {value!r}); run with the same task, settings "
@@ -147,6 +157,19 @@ def load(out: str | Path, *, expect: Mapping[str, Any]) -> tuple[dict, LoopSnaps
         raise MjstampError(f"{str(path)!r} is not a readable checkpoint ({e}); delete it to "
                            "start afresh") from None
     return meta, snap
+
+
+def _first_change(meta: Mapping[str, Any], settings, seed) -> str:
+    """'setting devices was 2, is 1' for the first setting (or the seed) that differs; ''."""
+    if seed is not None and meta.get("seed") != seed:
+        return f"seed was {meta.get('seed')!r}, is {seed!r}"
+    old = meta.get("settings") or {}
+    for group in ("task", "solve"):
+        for name, value in (settings or {}).get(group, {}).items():
+            before = old.get(group, {}).get(name)
+            if before != value:
+                return f"{group} setting {name} was {before!r}, is {value!r}"
+    return ""
 
 
 class Checkpointer:
@@ -209,7 +232,13 @@ class Checkpointer:
             yield
         finally:
             for s, handler in previous.items():
-                signal.signal(s, handler)
+                # N.B. None: a handler installed from C, which Python cannot reinstall.
+                signal.signal(s, signal.SIG_DFL if handler is None else handler)
+        if self.signal is not None:  # it came after the last iteration's checkpoint call
+            name = signal.Signals(self.signal).name
+            hint = f"; continue with {self.resume_hint}" if self.resume_hint else ""
+            where = f"the last checkpoint, {self.path}" if self.saved else "no checkpoint yet"
+            raise Interrupted(f"{name} as STAMP ended: {where}{hint}")
 
 
 def describe(meta: Mapping[str, Any]) -> str:

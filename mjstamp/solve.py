@@ -445,7 +445,7 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
 
 
 def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, resume: bool,
-                   every_s: float, resume_hint: str, say):
+                   every_s: float, resume_hint: str, say, devices: int = 1):
     """(Checkpointer or None, snapshot to resume from or None), checked before any work."""
     if directory is None:
         if resume:
@@ -454,14 +454,16 @@ def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, res
         return None, None
     if isinstance(every_s, bool) or not isinstance(every_s, (int, float)) or not every_s >= 0:
         raise MjstampError(f"checkpoint_every_s={every_s!r} must be a number >= 0 (seconds)")
-    settings = {"task": dict(problem.settings), "solve": cfg.as_dict()}
+    # N.B. the device count resolved: a resume on other devices would shard otherwise.
+    settings = {"task": dict(problem.settings), "solve": {**cfg.as_dict(), "devices": devices}}
     meta = {"task": problem.name, "version": checkpoint_mod.__version__,
             "fingerprint": checkpoint_mod.fingerprint(problem.fingerprint, settings, seed),
             "seed": seed, "settings": settings}
     snap = None
     if resume:
-        found, snap = checkpoint_mod.load(directory, expect={
-            k: meta[k] for k in ("task", "version", "fingerprint")})
+        found, snap = checkpoint_mod.load(
+            directory, expect={k: meta[k] for k in ("task", "version", "fingerprint")},
+            settings=settings, seed=seed)
         say(f"resuming from the checkpoint of {checkpoint_mod.describe(found)}")
     plans_mod.check_writable(directory)
     checkpointer = checkpoint_mod.Checkpointer(directory, meta, every_s=every_s,
@@ -521,7 +523,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     parallel.check_devices(devices)
     say, clock = _say(progress), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
-                                        checkpoint_every_s, resume_hint, say)
+                                        checkpoint_every_s, resume_hint, say, devices)
     theta0, screen = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
     clock["screen"] = time.perf_counter()

@@ -117,16 +117,23 @@ def test_sigterm_writes_a_checkpoint_and_says_how_to_continue(reference, tmp_pat
 
 
 def test_a_checkpoint_of_other_settings_is_refused_in_one_line(tmp_path, tiny_task):
+    from mjstamp.config import SolveConfig  # noqa: PLC0415
     from mjstamp.solve import solve  # noqa: PLC0415
 
     problem = tiny_task().build()
-    settings = {"task": dict(problem.settings), "solve": {"particles": 8}}
-    snap_meta = {"task": "tiny", "version": checkpoint.__version__,
-                 "fingerprint": checkpoint.fingerprint(problem.fingerprint, settings, 0)}
+    # The checkpoint of the same solve with 16 particles instead of 8.
+    solve_settings = {**SolveConfig.from_dict({**CONFIG, "particles": 16}).as_dict(),
+                      "devices": 1}
+    settings = {"task": dict(problem.settings), "solve": solve_settings}
+    snap_meta = {"task": "tiny", "version": checkpoint.__version__, "settings": settings,
+                 "seed": 0, "fingerprint": checkpoint.fingerprint(problem.fingerprint, settings, 0)}
     _fake_checkpoint(tmp_path, snap_meta)
-    with pytest.raises(MjstampError, match="another declaration, scene, settings or seed") as e:
+    with pytest.raises(MjstampError, match="solve setting particles was 16, is 8") as e:
         solve(problem, CONFIG, seed=0, checkpoint_dir=tmp_path, resume=True, progress=False)
     assert "\n" not in str(e.value)
+    with pytest.raises(MjstampError, match="seed was 0, is 1"):
+        solve(problem, {**CONFIG, "particles": 16}, seed=1, checkpoint_dir=tmp_path,
+              resume=True, progress=False)
     _fake_checkpoint(tmp_path, {**snap_meta, "version": "0.0.1"})
     with pytest.raises(MjstampError, match="another mjstamp version"):
         solve(problem, CONFIG, seed=0, checkpoint_dir=tmp_path, resume=True, progress=False)
@@ -194,3 +201,14 @@ def test_resume_hint_is_the_same_command_with_resume():
 
     hint = _resume_hint(["solve", "billiards", "--seed", "3", "--out", "R", "--set", "a=1"], "R")
     assert hint == "mjstamp solve billiards --seed 3 --set a=1 --resume R"
+
+
+def test_a_signal_after_the_last_checkpoint_call_still_stops(tmp_path):
+    """SIGTERM between the last iteration and the end of STAMP is not lost."""
+    previous = signal.getsignal(signal.SIGTERM)
+    ck = checkpoint.Checkpointer(tmp_path, {"task": "tiny"}, every_s=1e9, resume_hint="RESUME")
+    with pytest.raises(checkpoint.Interrupted, match="SIGTERM as STAMP ended.*RESUME"):
+        with ck.catch_signals():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+    assert signal.getsignal(signal.SIGTERM) is previous

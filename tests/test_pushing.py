@@ -102,7 +102,7 @@ def test_manhattan_detour_is_zero_for_monotone_pushes_only():
 
 
 def test_bad_settings_are_one_line_errors(tmp_path):
-    with pytest.raises(MjstampError, match="max_pushes=0 must be >= 1"):
+    with pytest.raises(MjstampError, match="max_pushes=0 must be in 1..10"):
         tasks.load("pushing", max_pushes=0)
     with pytest.raises(MjstampError, match=r"goal region at \(1.5, 0.3\).*outside the workspace"):
         tasks.load("pushing", goal_x=1.5)
@@ -127,7 +127,7 @@ def test_an_explicit_stale_bank_is_refused_not_replaced(task, tmp_path):
 
 def test_cli_pushing_bad_input(capsys):
     cases = [
-        (["solve", "pushing", "--max-pushes", "0"], "--max-pushes=0 must be >= 1"),
+        (["solve", "pushing", "--max-pushes", "0"], "--max-pushes=0 must be in 1..10"),
         (["solve", "billiards", "--max-pushes", "2"], "task 'billiards' has no such option"),
         (["solve", "pushing", "--set", "skill_bank=/nonexistent/bank.npz"], "not found"),
     ]

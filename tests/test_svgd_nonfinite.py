@@ -118,3 +118,38 @@ def test_without_redraw_a_nonfinite_particle_stays_frozen():
 def test_nonfinite_redraw_is_validated():
     with pytest.raises(ValueError, match="nonfinite_redraw"):
         StampConfig(nonfinite_redraw=-1)
+
+
+def test_a_particle_that_goes_bad_mid_run_keeps_its_moments():
+    """Frozen when it enters the NaN region: θ and its (nonzero) Adam moments stay put."""
+    target = jnp.array([3.0, 0.0])  # the mode lies inside the NaN region θ_0 > BAD
+
+    def logp(x):
+        value = -0.5 * jnp.sum((x - target) ** 2, axis=1)
+        return jnp.where(x[:, 0] > BAD, jnp.nan, value)
+
+    optimizer = optax.adam(0.2)
+    step = jax.jit(build_svgd_step(logp, rbf(), optimizer))
+    state = init(jnp.stack([jnp.linspace(-1.0, 1.4, 6), jnp.zeros(6)], axis=1), optimizer)
+    frozen_seen = 0
+    for _ in range(40):
+        before = state
+        state, info = step(state, KEY)
+        bad = np.isnan(np.asarray(info.score_norm))
+        if not bad.any():
+            continue
+        frozen_seen += 1
+        np.testing.assert_array_equal(state.particles[bad], before.particles[bad])
+        for new, old in zip(jax.tree.leaves(state.opt_state), jax.tree.leaves(before.opt_state),
+                            strict=True):
+            if new.shape == before.particles.shape:
+                np.testing.assert_array_equal(np.asarray(new)[bad], np.asarray(old)[bad])
+                assert np.all(np.asarray(old)[bad][:, 0] != 0)  # built up before freezing
+    assert frozen_seen > 0
+
+
+@pytest.mark.parametrize("valid", [[False] * 5, [True] + [False] * 4])
+def test_median_bandwidth_of_fewer_than_two_valid_particles_is_one(valid):
+    x = jax.random.normal(KEY, (5, 2))
+    terms = rbf().evaluate(x, jnp.full(5, 0.2), valid=jnp.array(valid))
+    np.testing.assert_array_equal(terms.params, [1.0])

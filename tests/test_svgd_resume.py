@@ -9,15 +9,19 @@ from mjstamp.svgd import LoopSnapshot, StampConfig, rbf, run_stamp
 
 
 def _logp(x):
-    return -0.5 * jnp.sum((x - jnp.array([0.5, -0.2])) ** 2 / jnp.array([0.3, 0.8]), axis=1)
+    # A Gaussian bump on a plateau: particles out on the flat feel no gradient and sit
+    # below the median, so the stall rescue re-draws them (its counters must resume too).
+    bump = -0.5 * jnp.sum((x - jnp.array([0.5, -0.2])) ** 2 / jnp.array([0.3, 0.8]), axis=1)
+    return jnp.maximum(bump, -8.0)
 
 
 def _redraw(key, k):
     return jax.random.normal(key, (k, 2))
 
 
-CONFIG = StampConfig(svgd_max_iters=8, sgd_max_iters=6, min_iters=3, window=2, rtol=1e-9,
-                     motion_tol=1e-9, seed=4, rescue_window=2)
+# Both phases end by a (loose) convergence test before their caps.
+CONFIG = StampConfig(svgd_max_iters=30, sgd_max_iters=30, min_iters=3, window=2, rtol=0.5,
+                     motion_tol=1.0, seed=4, rescue_window=2)
 X0 = jax.random.normal(jax.random.key(1), (6, 2)) * 3
 
 
@@ -38,20 +42,27 @@ def straight():
 
 def test_every_iteration_hands_out_a_snapshot(straight):
     result, snaps = straight
-    assert len(snaps) == result.svgd_iters + result.sgd_iters == 14
-    assert [s.phase for s in snaps] == [0] * 8 + [1] * 6
+    assert len(snaps) == result.svgd_iters + result.sgd_iters
+    assert [s.phase for s in snaps] == [0] * result.svgd_iters + [1] * result.sgd_iters
     assert all(isinstance(s, LoopSnapshot) for s in snaps)
+    # Not vacuous: the rescue fires and both phases end by their convergence test.
+    assert result.rescued.sum() > 0 and result.svgd_converged and result.sgd_converged
 
 
-@pytest.mark.parametrize("stop_after", [1, 5, 8, 9, 13, 14])
+@pytest.mark.parametrize("stop_after", ["first", "second", "svgd-1", "svgd-end",
+                                        "sgd-first", "sgd-second", "end"])
 def test_resumed_runs_end_where_the_straight_run_ends(straight, stop_after):
-    """Stopped after any iteration (in SVGD, at the switch, in SGD, at the end), then resumed."""
+    """Stopped after an iteration (in SVGD, at the switch, in SGD, at the end), then resumed."""
     result, _ = straight
     kept = []
 
+    k = result.svgd_iters
+    stop_at = {"first": 1, "second": 2, "svgd-1": k - 1, "svgd-end": k, "sgd-first": k + 1,
+               "sgd-second": k + 2, "end": k + result.sgd_iters}[stop_after]
+
     def stop(make):
         kept.append(make())
-        if len(kept) == stop_after:
+        if len(kept) == stop_at:
             raise _Stop
 
     with pytest.raises(_Stop):

@@ -233,17 +233,17 @@ def _median_bandwidth_from_sqdist(d2: jax.Array, valid: jax.Array | None = None)
     n = d2.shape[0]
     # No gradient flows through the bandwidth (and none into the bisection).
     med = _median_pairwise_distance(jax.lax.stop_gradient(d2), valid)
-    if valid is None:
-        scale = math.sqrt(math.log(n))
-    else:
+    # N.B. divided by a Python constant, as before masks existed: XLA turns that into a
+    # multiply, a division by a traced scale would round differently.
+    full = med / math.sqrt(math.log(n))
+    if valid is not None:
         nv = jnp.sum(valid).astype(d2.dtype)
-        # N.B. the static constant when all are valid: the same bits as without a mask.
-        scale = jnp.where(nv == n, math.sqrt(math.log(n)),
-                          jnp.sqrt(jnp.log(jnp.maximum(nv, 2.0))))
+        masked = med / jnp.sqrt(jnp.log(jnp.maximum(nv, 2.0)))
+        full = jnp.where(nv == n, full, masked)
         med = jnp.where(nv >= 2, med, 0.0)
     # N.B. when most particles of a group coincide the median is 0; any positive
     # bandwidth gives coincident particles zero repulsion, so fall back to 1.
-    return jnp.where(med > 0, med / scale, 1.0)
+    return jnp.where(med > 0, full, 1.0)
 
 
 def _mean_rows(x: jax.Array, valid: jax.Array | None) -> jax.Array:

@@ -559,8 +559,7 @@ class _Loop:
         if max_iters == 0:  # nothing to run: compile nothing either
             return state, False
         name = "svgd" if phase == PHASE_SVGD else "sgd"
-        # N.B. compiled for the fresh state's shapes and dtypes, which a snapshot shares.
-        step = jax.jit(step) if self.jit is None else self.jit(step, state, self.key, name)
+        fresh_state = state  # what the step is compiled for; a snapshot shares its shapes
         done = [r for r in self.rows if r.phase == phase] if resume is not None else []
         means = [float(r.logdensity_mean) for r in done]
         moves = [float(r.displacement) for r in done]
@@ -581,6 +580,8 @@ class _Loop:
                 return state, True
             if resume.iteration >= max_iters:
                 return state, False
+        step = (jax.jit(step) if self.jit is None
+                else self.jit(step, fresh_state, self.key, name))
         every = max(1, max_iters // 10)
         self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
         for t in range(len(done) + 1, max_iters + 1):
@@ -645,6 +646,7 @@ class _Rescue:
         self.counts = np.zeros(n, dtype=int)
         self.failing = np.zeros(n, dtype=int)
         self.nonfinite_counts = np.zeros(n, dtype=int)
+        self.fresh = np.zeros(0, dtype=int)  # re-drawn this iteration, not yet scored
 
     def __call__(self, state, info: StepInfo, score_norm, threshold: float, key):
         """(state with the particles stalled `window` times re-drawn, how many)."""
@@ -668,6 +670,8 @@ class _Rescue:
         one draws the same PRNG keys as before this check existed.
         """
         self.failing = np.where(np.isnan(score_norm), self.failing + 1, 0)
+        self.failing[self.fresh] = 0  # re-drawn by the stall rescue this iteration
+        self.fresh = np.zeros(0, dtype=int)
         idx = np.flatnonzero(self.failing >= self.nonfinite_window)
         if idx.size == 0:
             return state, 0
@@ -690,6 +694,7 @@ class _Rescue:
 
         self.stalled[idx] = 0
         self.failing[idx] = 0
+        self.fresh = idx
         return state._replace(particles=particles.at[idx].set(fresh),
                               opt_state=jax.tree.map(reset, state.opt_state))
 

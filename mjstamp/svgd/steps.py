@@ -414,10 +414,14 @@ def _apply(optimizer, state: SVGDState, direction: jax.Array, info: StepInfo, ok
     """Ascends along `direction` with optax (which minimises −direction).
 
     Particles not `ok` ((n,) bool: a non-finite log density, score or
-    features) are frozen for the step: no update, and their rows of the
-    optimizer state (Adam's moments) kept as they were.
+    features) are frozen for the step: a zero direction into the optimizer, no
+    update, and their (n, d) rows of the optimizer state (Adam's moments) kept
+    as they were; state shared by all particles (Adam's step count) advances.
     """
-    updates, opt_state = optimizer.update(-direction, state.opt_state, state.particles)
+    # N.B. a frozen particle's direction is zeroed before the optimizer too: one that
+    # reads all rows at once (a global-norm clip, a trust ratio) must not see it.
+    updates, opt_state = optimizer.update(-_zero_rows(direction, ok), state.opt_state,
+                                          state.particles)
     updates = _zero_rows(updates, ok)
     shape = state.particles.shape
 
