@@ -19,7 +19,7 @@ but XLA compiles a smaller batch with other vectorised reductions: scores can
 differ in the last bits (0 for billiards' forward-mode scores, 7e-12 for its
 reverse-mode ones between 1 and 2 devices), and a task that amplifies rounding
 can end with slightly different plans (billiards, seed 0: 69 verified plans in
-16 task plans on 1 CPU device, 66 in 15 on 2). The tiny test task gives
+17 task plans on 1 CPU device, 68 in 16 on 2). The tiny test task gives
 bit-identical plans on 1 and 2 devices (`tests/test_parallel.py`).
 """
 
