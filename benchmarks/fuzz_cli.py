@@ -136,6 +136,8 @@ def random_argv(rng, root: Path) -> list[str]:
             argv += ["--checkpoint-every", str(rng.choice(FLOATS))]
         if rng.random() < 0.2:
             argv += ["--max-pushes", str(rng.choice(INTS))]
+        if rng.random() < 0.15:
+            argv += ["--devices", str(rng.choice(INTS + ["auto", "AUTO"]))]
         argv += _set_pairs(task if task in ("billiards", "pushing") else "billiards", rng)
         for flag in ("--json", "--no-coverage", "--quiet"):
             if rng.random() < 0.2:

@@ -66,14 +66,17 @@ def _cmd_check(args) -> int:
     from mjstamp.scenes.check import CheckSpec, check_scene, check_task
 
     options = {} if args.iterations is None else {"iterations": args.iterations}
-    if args.iterations is not None and args.iterations < 1:
-        raise MjstampError(f"--iterations={args.iterations} must be >= 1")
+    if args.iterations is not None and not 1 <= args.iterations <= MAX_SOLVER_ITERATIONS:
+        raise MjstampError(f"--iterations={args.iterations} must be in "
+                           f"1..{MAX_SOLVER_ITERATIONS}")
     if args.gradient is not None:
         options["gradient"] = args.gradient
     if args.tolerance is not None and not args.tolerance > 0:
         raise MjstampError(f"--tolerance={args.tolerance} must be > 0 (metres)")
-    if args.horizon is not None and args.horizon < 1:
-        raise MjstampError(f"--horizon={args.horizon} must be >= 1")
+    from mjstamp.tasks.task import MAX_HORIZON
+
+    if args.horizon is not None and not 1 <= args.horizon <= MAX_HORIZON:
+        raise MjstampError(f"--horizon={args.horizon} must be in 1..{MAX_HORIZON}")
     from mjstamp.config import MAX_PARTICLES
 
     if not 1 <= args.particles <= MAX_PARTICLES:
@@ -352,6 +355,10 @@ def _add_task_contributions(sub, solve) -> None:
             parser = sub.add_parser(command.name, help=command.help)
             command.add_arguments(parser)
             parser.set_defaults(func=command.run)
+
+
+#: Most solver iterations `check --iterations` takes (MuJoCo's own default is 100).
+MAX_SOLVER_ITERATIONS = 10_000
 
 
 def _seed(text: str) -> int:

@@ -75,7 +75,15 @@ def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
     """
     folder = cache_dir()
     if folder is None:
-        return jax.jit(fn)
+        jitted = jax.jit(fn)
+
+        def uncached(*args):  # committed, strongly typed arguments: one compile (`_strong`)
+            leaves, tree = jax.tree_util.tree_flatten(args)
+            leaves = [x if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else _strong(x)
+                      for x in leaves]
+            return jitted(*jax.tree_util.tree_unflatten(tree, leaves))
+
+        return uncached
     leaves, in_tree = jax.tree_util.tree_flatten(example_args)
     is_key = [jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) for x in leaves]
     raw = [jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key, strict=True)]

@@ -40,6 +40,8 @@ def test_set_bool_means_what_it_says(text, want):
     (["view", "y" * 300], "cannot be read"),
     (["check", "billiards", "--particles", "10000000"], "must be in 1..65536"),
     (["solve", "billiards", "--particles", "abc"], "invalid int value"),
+    (["check", "billiards", "--iterations", "99999999999999999999"], "must be in 1..10000"),
+    (["check", "tiny.xml", "--horizon", "99999999999999999999"], "must be in 1..100000"),
 ])
 def test_found_by_the_fuzz_now_one_line(argv, needle, capsys):
     code = main(argv)
