@@ -20,7 +20,12 @@ Outcomes, per scene:
 - crash: any other exception, a traceback on stderr, or a rejection that is
   not one line.
 
-Usage: python -m benchmarks.fuzz --scenes N [--check K] [--cli N] [--seed S] [--json]
+With `--solve K` the first K scenes that build (and have a joint) also go
+through a tiny solve in-process (`generic_task`, `SOLVE_CONFIG`): ok (a
+`SolveResult`), rejected (an `MjstampError` of one line) or crash.
+
+Usage: python -m benchmarks.fuzz --scenes N [--check K] [--solve K] [--cli N] [--seed S]
+[--json]
 (`--print-scene I` prints scene I's MJCF for seed S, to reproduce an example).
 Scene i of seed S is `scene_mjcf(S, i)`. The CLI's own arguments will be fuzzed
 by a `cli` section of this file; each section is one function returning a dict,
@@ -56,6 +61,13 @@ FLAGS = (
 )
 CHECK_ARGS = ("--particles", "4", "--horizon", "20", "--json")
 OUTCOMES = ("ok", "rejected", "unhealthy", "crash")
+# The tiny solve: a few particles and iterations, enough to compile and run every
+# stage of `mjstamp.solve.solve` (screen, calibration, STAMP's two phases, decode
+# and C verification) once; min_iters > the iterations, so no phase ends early.
+SOLVE_CONFIG = {"particles": 4, "svgd_max_iters": 2, "sgd_max_iters": 2, "min_iters": 100,
+                "screen": 1, "repair": False, "allow_unfaithful": True}
+SOLVE_HORIZON = 20
+SOLVE_OUTCOMES = ("ok", "rejected", "crash")
 
 
 def _fmt(values) -> str:
@@ -481,9 +493,106 @@ def check_subprocess(path: str | Path, *, timeout: float = 1800) -> tuple[str, s
     return classify_check(proc.returncode, proc.stdout, proc.stderr)
 
 
-def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, seed: int = 0,
-                examples: int = 5, progress=None) -> dict:
+def _final_distance2(body: int | str, target: np.ndarray):
+    """Cost ‖x_T − g‖²: squared distance of the body's centre to a point g at the final step."""
+    import jax.numpy as jnp  # N.B. not at import: `main` configures JAX first
+
+    def cost(r):
+        goal = jnp.asarray(target, r.scene.dtype)
+        return jnp.sum((r.body_pos(body)[:, -1] - goal) ** 2, axis=-1)
+
+    return cost
+
+
+def _ends_near(body: int | str, target: np.ndarray, radius: float):
+    """Success predicate: the body's centre ends within `radius` of the point `target`."""
+
+    def predicate(replay):
+        ok = np.linalg.norm(replay.body_pos(body)[:, -1] - target, axis=-1) < radius
+        return ok, np.full(len(ok), "", dtype=object)
+
+    return predicate
+
+
+def generic_task(scene, *, horizon: int = SOLVE_HORIZON, coordinates: int = 3):
+    """A task any scene with a joint admits, declared with the public task API.
+
+    θ: the initial velocities, in [−1, 1], of up to `coordinates` joint
+    coordinates, one per joint in joint order (a free joint gives vx and vy):
+    each joint by its name, or by its id where it has none. Cost: the squared
+    distance of the first such joint's body to a point a fifth of the scene's
+    size (`Scene.length_scale`) along +x of where it starts, at the final step;
+    success: ending within a tenth of the scene's size of it. No sites, no
+    symbols: nothing a random scene may lack.
+
+    Returns:
+      The `Task`, or None for a scene without joints (nothing to vary).
+    """
+    import mujoco
+
+    from mjstamp.tasks import Task
+
+    m = scene.m
+    free = int(mujoco.mjtJoint.mjJNT_FREE)
+    refs = []
+    for j in range(m.njnt):
+        ref = m.joint(j).name or j
+        refs += [(ref, 0), (ref, 1)] if int(m.jnt_type[j]) == free else [ref]
+    refs = refs[:coordinates]
+    if not refs:
+        return None
+    body = int(m.jnt_bodyid[0])  # joint 0 is the first coordinate's
+    body_ref = m.body(body).name or body
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    target = d.xpos[body] + [0.2 * scene.length_scale, 0.0, 0.0]
+    task = Task("fuzz", scene, horizon=horizon)
+    task.box("v", low=[-1.0] * len(refs), high=[1.0] * len(refs), initial_qvel=refs)
+    task.cost("reach", _final_distance2(body_ref, target), weight=10.0 / scene.length_scale**2)
+    task.success(_ends_near(body_ref, target, 0.1 * scene.length_scale))
+    return task
+
+
+def solve_in_process(path: str | Path) -> tuple[str, str, bool]:
+    """`generic_task` on `Scene(path)` through the tiny solve (`SOLVE_CONFIG`), in-process.
+
+    Returns (outcome, message, traceback): "ok" (a `SolveResult`; the message
+    counts its plans), "rejected" (an `MjstampError` of one line), "skipped"
+    (a scene without joints) or "crash" (any other exception, an
+    `MjstampError` of several lines, or "Traceback" printed while solving).
+    """
+    from mjstamp.errors import MjstampError
+    from mjstamp.scenes import Scene
+    from mjstamp.solve import solve
+
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            task = generic_task(Scene(path))
+            if task is None:
+                return "skipped", "no joints to vary", False
+            result = solve(task, SOLVE_CONFIG, progress=False)
+    except MjstampError as e:
+        if "\n" in str(e) or not str(e).strip():
+            return "crash", f"MjstampError not on one line: {str(e)!r}", False
+        return "rejected", str(e), False
+    except Exception as e:  # noqa: BLE001 - any other exception is what the fuzzer hunts
+        frame = traceback.extract_tb(e.__traceback__)[-1]
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        return "crash", f"{type(e).__name__} at {where}: {_one_line(e)}", True
+    printed = out.getvalue() + err.getvalue()
+    if "Traceback" in printed:
+        return "crash", f"printed a traceback: {_one_line(printed[-300:])}", True
+    ok = np.asarray(result.verified.ok)
+    return "ok", f"{int(ok.sum())}/{len(ok)} plans verified", False
+
+
+def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, solve: int = 0,
+                seed: int = 0, examples: int = 5, progress=None) -> dict:
     """Tries `n` random scenes through `Scene`, the first `check` through `mjstamp check`.
+
+    The first `solve` scenes that build a `Scene` and have a joint also go
+    through the tiny solve (`solve_in_process`).
 
     Args:
       n: scenes to build in-process (cheap: no compilation).
@@ -492,6 +601,9 @@ def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, seed: int = 0,
         seconds to minutes on a CPU).
       subprocesses: of the checked scenes, how many (the first ones) run the
         `mjstamp` console script in a subprocess instead of `cli.main` in-process.
+      solve: how many scenes (the first that build, with a joint) go through
+        `generic_task` and `mjstamp.solve.solve(task, SOLVE_CONFIG)` in-process
+        (each compiles a solve: about a minute on a CPU).
       seed: scene i is `scene_mjcf(seed, i)`.
       examples: how many crash messages to keep.
       progress: callable(str) for status lines, or None.
@@ -502,7 +614,11 @@ def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, seed: int = 0,
       one_line_rejections, outcomes ({outcome: count} over the scenes, a
       checked scene counted by its check), scene_outcomes (the `Scene` pass
       alone), examples ([{seed, index, stage, message}]), checked (the verdict
-      of each checked scene: [{index, via, outcome, message, wall_s}]) and wall_s.
+      of each checked scene: [{index, via, outcome, message, wall_s}]),
+      scenes_solved, solve_outcomes ({ok, rejected, crash}: count), solved
+      ([{index, outcome, message, wall_s}]), solve_skipped (indices of built
+      scenes without joints passed over) and wall_s. crashes, tracebacks and
+      one_line_rejections count the solves' too.
     """
     say = progress or (lambda _: None)
     t0 = time.perf_counter()
@@ -511,12 +627,16 @@ def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, seed: int = 0,
     crashes = tracebacks = rejections = checked = 0
     kept: list[dict] = []
     verdicts: list[dict] = []
+    solves = {k: 0 for k in SOLVE_OUTCOMES}
+    solved: list[dict] = []
+    skipped: list[int] = []
     with tempfile.TemporaryDirectory(prefix="mjstamp-fuzz-") as tmp:
         for i in range(n):
             path = Path(tmp) / f"scene_{seed}_{i}.xml"
             path.write_text(scene_mjcf(seed, i))
             outcome, message, had_tb = build_scene(path)
             built[outcome] += 1
+            scene_built = outcome == "ok"
             stage = "Scene"
             if i < check:
                 via = "subprocess" if i < subprocesses else "in-process"
@@ -545,6 +665,25 @@ def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, seed: int = 0,
                                  "message": message.replace(tmp + "/", "")})
             if outcome in ("crash", "rejected", "unhealthy") and i < check:
                 say(f"scene {i}: {outcome}: {message[:200]}")
+            if scene_built and len(solved) < solve:
+                say(f"scene {i}: tiny solve")
+                t1 = time.perf_counter()
+                s_outcome, s_message, s_tb = solve_in_process(path)
+                s_message = s_message.replace(tmp + "/", "")
+                if s_outcome == "skipped":
+                    skipped.append(i)
+                else:
+                    solves[s_outcome] += 1
+                    solved.append({"index": i, "outcome": s_outcome, "message": s_message[:400],
+                                   "wall_s": round(time.perf_counter() - t1, 1)})
+                    rejections += s_outcome == "rejected"
+                    tracebacks += s_tb
+                    if s_outcome == "crash":
+                        crashes += 1
+                        if len(kept) < examples:
+                            kept.append({"seed": seed, "index": i, "stage": "solve",
+                                         "message": s_message})
+                say(f"scene {i}: solve {s_outcome}: {s_message[:200]}")
             if (i + 1) % 50 == 0 or i + 1 == n:
                 say(f"{i + 1}/{n} scenes: {final}")
     return {
@@ -557,8 +696,13 @@ def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, seed: int = 0,
         "scene_outcomes": built,
         "examples": kept,
         "checked": verdicts,
+        "scenes_solved": len(solved),
+        "solve_outcomes": solves,
+        "solved": solved,
+        "solve_skipped": skipped,
         "seed": seed,
         "check_args": list(CHECK_ARGS),
+        "solve_config": {**SOLVE_CONFIG, "horizon": SOLVE_HORIZON},
         "wall_s": round(time.perf_counter() - t0, 1),
     }
 
@@ -571,6 +715,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="of those, how many also go through `mjstamp check`")
     parser.add_argument("--subprocess", type=int, default=2, dest="subprocesses",
                         help="of the checked, how many via the console script")
+    parser.add_argument("--solve", type=int, default=0, metavar="K",
+                        help="of the scenes that build, how many (the first K with a joint) "
+                             "go through a tiny solve in-process")
     parser.add_argument("--cli", type=int, default=0, metavar="N",
                         help="random command lines to try (benchmarks/fuzz_cli.py)")
     parser.add_argument("--cli-subprocesses", type=int, default=20, metavar="K",
@@ -583,8 +730,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.print_scene is not None:
         print(scene_mjcf(args.seed, args.print_scene))
         return 0
-    if args.scenes < 0 or args.check < 0:
-        parser.error("--scenes and --check must be >= 0")
+    if args.scenes < 0 or args.check < 0 or args.solve < 0:
+        parser.error("--scenes, --check and --solve must be >= 0")
 
     from mjstamp.cli import configure_jax
 
@@ -595,7 +742,8 @@ def main(argv: list[str] | None = None) -> int:
 
     report = {"benchmark": "fuzz"}
     report.update(fuzz_scenes(args.scenes, check=min(args.check, args.scenes),
-                              subprocesses=args.subprocesses, seed=args.seed, progress=say))
+                              subprocesses=args.subprocesses, solve=args.solve,
+                              seed=args.seed, progress=say))
     if args.cli:
         from benchmarks.fuzz_cli import fuzz_cli  # noqa: PLC0415
 

@@ -20,15 +20,17 @@ from benchmarks.fuzz import (  # noqa: E402 - after the path set-up above
     CHECK_ARGS,
     build_scene,
     classify_check,
+    generic_task,
     mjcf_scenes,
     random_mjcf,
     scene_mjcf,
+    solve_in_process,
 )
 from mjstamp.errors import MjstampError  # noqa: E402
 from mjstamp.scenes import Scene  # noqa: E402
 from mjstamp.scenes.check import CheckSpec, _parameterisation  # noqa: E402
 
-SEED = 0  # the fixed seed of the slow CLI test
+SEED = 0  # the fixed seed of the slow CLI and solve tests
 
 
 def _scene(option: str = "", joints: str = '<joint type="slide"/>') -> str:
@@ -130,6 +132,61 @@ def test_cli_check_on_generated_scenes_exits_cleanly():
             if len(checked) == 2:
                 break
     assert len(checked) == 2
+
+
+def test_task_declares_unnamed_joints_by_id():
+    # Found by the fuzzer's tiny solve: a task on a scene whose joints have no names
+    # could not name them; `initial_qvel=(0,)` raised TypeError ('int' object is not
+    # subscriptable) and (0, 1) was read as one (joint, k) pair.
+    from mjstamp.tasks import Task
+
+    scene = Scene(_scene(joints='<joint type="slide"/><joint type="hinge" axis="0 1 0"/>'))
+    task = Task("t", scene, horizon=5)
+    task.box("a", low=[-1, -1], high=[1, 1], initial_qvel=(0, 1))
+    task.box("b", low=[-1], high=[1], initial_qvel=(1,))
+    task.box("c", low=[-1], high=[1], initial_qvel=1)
+    task.box("d", low=[-1], high=[1], initial_qpos=[(0, 0)])
+    assert [v.qvel or v.qpos for v in task.variables] == [(0, 1), (1,), (1,), (0,)]
+    for bad, match in (((1.5,), "entry 1.5 is not a joint; valid: a joint name or id"),
+                       ((None,), "entry None is not a joint"),
+                       ((True,), "entry True is not a joint"),
+                       (1.5, "initial_qvel=1.5 is not a sequence of joints"),
+                       ((2,), "unknown joint 2 .*valid: an id in 0..1$"),
+                       (("x",), "unknown joint 'x' .*valid: an id in 0..1$")):
+        with pytest.raises(MjstampError, match=match) as e:
+            Task("t", scene, horizon=5).box("v", low=[-1], high=[1], initial_qvel=bad)
+        assert "\n" not in str(e.value)
+    # A free joint's coordinates by id, and the one-pair shorthand of a single one.
+    free = Scene(_scene(joints="<freejoint/>"))
+    task = Task("t", free, horizon=5)
+    task.box("v", low=[-1] * 3, high=[1] * 3, initial_qvel=[(0, 0), (0, 1), (0, 5)])
+    task.box("w", low=[-1], high=[1], initial_qvel=(0, 4))
+    assert [v.qvel for v in task.variables] == [(0, 1, 5), (4,)]
+
+
+def test_generic_task_declares_on_any_joints():
+    # The fuzzer's tiny-solve task: unnamed joints by id, a free joint's vx and vy.
+    scene = Scene(_scene(joints='<joint type="slide"/><joint type="hinge" axis="0 1 0"/>'))
+    task = generic_task(scene)
+    assert task.dim == 2 and task.variables[0].qvel == (0, 1) and task.horizon == 20
+    assert generic_task(Scene(_scene(joints="<freejoint/>"))).variables[0].qvel == (0, 1)
+    assert generic_task(Scene(_scene(joints=""))) is None
+
+
+@pytest.mark.slow
+def test_tiny_solve_on_a_generated_scene():
+    """The fuzzer's tiny solve on the first scene of SEED that builds and has a joint."""
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(100):
+            path = pathlib.Path(tmp) / f"scene_{i}.xml"
+            path.write_text(scene_mjcf(SEED, i))
+            if build_scene(path)[0] == "ok" and Scene(path).m.njnt:
+                break
+        outcome, message, had_traceback = solve_in_process(path)
+    # N.B. a one-line MjstampError is a legitimate refusal (solve_in_process
+    # classifies a several-line one as a crash); anything else is a bug.
+    assert outcome in ("ok", "rejected"), (i, message)
+    assert not had_traceback
 
 
 def test_ground_is_not_told_to_become_a_body_geom():

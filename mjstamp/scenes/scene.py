@@ -325,14 +325,17 @@ class Scene:
     def id(self, kind: str, name: str | int) -> int:
         """Id of a named object; ints pass through after a range check."""
         table = self._names[kind]
-        if isinstance(name, (int, np.integer)):
-            if 0 <= int(name) < getattr(self.m, _NAME_KINDS[kind][1]):
+        count = getattr(self.m, _NAME_KINDS[kind][1])
+        if isinstance(name, (int, np.integer)) and not isinstance(name, bool):
+            if 0 <= int(name) < count:
                 return int(name)
-        elif name in table:
+        elif isinstance(name, str) and name in table:
             return table[name]
+        choices = ([valid_list(table)] if table else []) + (
+            [f"an id in 0..{count - 1}"] if count else [])
         raise MjstampError(
             f"unknown {kind} {name!r} in scene {self.name!r} ({self._label}); "
-            f"valid: {valid_list(table)}"
+            f"valid: {' or '.join(choices) or '(none)'}"
         )
 
     def body(self, name: str | int) -> int:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import numbers
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -43,6 +44,17 @@ from mjstamp.tasks.problem import Problem, Rollout, default_kernel
 
 #: Longest rollout a task may declare, in steps.
 MAX_HORIZON = 100_000
+
+
+def _is_joint(j) -> bool:
+    """A joint reference: a name or an id (not a bool, which numbers.Integral admits)."""
+    return isinstance(j, str) or (isinstance(j, numbers.Integral) and not isinstance(j, bool))
+
+
+def _is_pair(j) -> bool:
+    """(joint, k): a joint reference and an integer coordinate index."""
+    return (isinstance(j, (tuple, list)) and len(j) == 2 and _is_joint(j[0])
+            and _is_joint(j[1]) and not isinstance(j[1], str))
 
 
 class Task:
@@ -111,19 +123,27 @@ class Task:
             raise MjstampError(f"task {self.name!r}: {what} name {name!r} is already declared")
 
     def _joint_addresses(self, joints, kind: str, size: int, var: str):
-        """Addresses in qvel/qpos of joint coordinates: a name, or (name, index).
+        """Addresses in qvel/qpos of joint coordinates: a joint, or (joint, index).
 
-        A name is the joint's first coordinate (all a slide or hinge has); (name, k)
-        is its k-th, for free and ball joints (qvel of a free joint: 3 linear then
-        3 angular; qpos: 3 positions then a quaternion).
+        A joint is a name or an id (a hand-written scene often leaves its joints
+        unnamed); alone it means its first coordinate (all a slide or hinge has);
+        (joint, k) is its k-th, for free and ball joints (qvel of a free joint: 3
+        linear then 3 angular; qpos: 3 positions then a quaternion).
         """
         if joints is None:
             return None
-        if isinstance(joints, str) or (
-            isinstance(joints, tuple) and len(joints) == 2 and isinstance(joints[1], int)
-        ):
+        # N.B. a bare (name, k) tuple is one pair, as before joints had ids; a bare
+        # (id, k) is one pair only for a single coordinate, else two joint ids.
+        if _is_joint(joints) or (isinstance(joints, tuple) and _is_pair(joints) and (
+                isinstance(joints[0], str) or size == 1)):
             joints = (joints,)
-        joints = tuple(joints)
+        try:
+            joints = tuple(joints)
+        except TypeError:
+            raise MjstampError(
+                f"task {self.name!r}: variable {var!r}: initial_{kind}={joints!r} is not a "
+                "sequence of joints; valid: a joint name or id, or (joint, k), per coordinate"
+            ) from None
         if len(joints) != size:
             raise MjstampError(
                 f"task {self.name!r}: variable {var!r} has {size} coordinates but "
@@ -132,15 +152,24 @@ class Task:
         m = self.scene.m
         out = []
         for j in joints:
-            name, k = (j, 0) if isinstance(j, str) else (j[0], int(j[1]))
-            jid = self.scene.joint(name)
+            if _is_joint(j):
+                ref, k = j, 0
+            elif _is_pair(j):
+                ref, k = j[0], int(j[1])
+            else:
+                raise MjstampError(
+                    f"task {self.name!r}: variable {var!r}: initial_{kind} entry {j!r} is "
+                    "not a joint; valid: a joint name or id, or (joint, k) for its k-th "
+                    "coordinate"
+                )
+            jid = self.scene.joint(ref)
             width = joint_width(int(m.jnt_type[jid]), kind)
             if not 0 <= k < width:
                 raise MjstampError(
-                    f"task {self.name!r}: variable {var!r}: joint {name!r} has {width} "
+                    f"task {self.name!r}: variable {var!r}: joint {ref!r} has {width} "
                     f"{kind} coordinates; index {k} is not in 0..{width - 1}"
                 )
-            base = self.scene.dof_adr(name) if kind == "qvel" else self.scene.qpos_adr(name)
+            base = self.scene.dof_adr(jid) if kind == "qvel" else self.scene.qpos_adr(jid)
             out.append(base + k)
         return tuple(out)
 
@@ -160,8 +189,9 @@ class Task:
           low: lower bounds, one per coordinate.
           high: upper bounds, one per coordinate (high > low).
           initial_qvel: joints whose initial velocity this variable sets, one
-            per coordinate: a joint name, or (name, k) for the k-th velocity of
-            a free or ball joint (a free joint: vx, vy, vz, then ωx, ωy, ωz).
+            per coordinate: a joint name or id, or (joint, k) for the k-th
+            velocity of a free or ball joint (a free joint: vx, vy, vz, then
+            ωx, ωy, ωz).
           initial_qpos: joints whose initial position this variable sets, named
             the same way.
         """
