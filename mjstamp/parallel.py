@@ -20,7 +20,8 @@ differ in the last bits (0 for billiards' forward-mode scores, 7e-12 for its
 reverse-mode ones between 1 and 2 devices), and a task that amplifies rounding
 can end with slightly different plans (billiards, seed 0: 69 verified plans in
 17 task plans on 1 CPU device, 68 in 16 on 2). The tiny test task gives
-bit-identical plans on 1 and 2 devices (`tests/test_parallel.py`).
+the same plans on 1 and 2 devices, costs and motion plans within 1e-12
+(`tests/test_parallel.py`).
 """
 
 from __future__ import annotations
