@@ -398,21 +398,31 @@ def build_scene(path: str | Path) -> tuple[str, str, bool]:
     traceback is whether an exception other than `MjstampError` escaped, which
     the CLI would print as a traceback.
     """
-    from mjstamp.errors import MjstampError
     from mjstamp.scenes import Scene
 
     try:
         scene = Scene(path)
         scene.length_scale  # noqa: B018 - what check derives its tolerance from
-    except MjstampError as e:
+    except Exception as e:  # noqa: BLE001 - any other exception is what the fuzzer hunts
+        return _raised(e)
+    return "ok", "", False
+
+
+def _raised(e: Exception) -> tuple[str, str, bool]:
+    """(outcome, message, traceback) of an exception a step raised.
+
+    A one-line MjstampError is a rejection; a several-line or empty one, and any
+    other exception (named with where it was raised), a crash.
+    """
+    from mjstamp.errors import MjstampError
+
+    if isinstance(e, MjstampError):
         if "\n" in str(e) or not str(e).strip():
             return "crash", f"MjstampError not on one line: {str(e)!r}", False
         return "rejected", str(e), False
-    except Exception as e:  # noqa: BLE001 - any other exception is what the fuzzer hunts
-        frame = traceback.extract_tb(e.__traceback__)[-1]
-        where = f"{Path(frame.filename).name}:{frame.lineno}"
-        return "crash", f"{type(e).__name__} at {where}: {_one_line(e)}", True
-    return "ok", "", False
+    frame = traceback.extract_tb(e.__traceback__)[-1]
+    where = f"{Path(frame.filename).name}:{frame.lineno}"
+    return "crash", f"{type(e).__name__} at {where}: {_one_line(e)}", True
 
 
 def classify_check(code: int, stdout: str, stderr: str) -> tuple[str, str, bool]:
@@ -561,7 +571,6 @@ def solve_in_process(path: str | Path) -> tuple[str, str, bool]:
     (a scene without joints) or "crash" (any other exception, an
     `MjstampError` of several lines, or "Traceback" printed while solving).
     """
-    from mjstamp.errors import MjstampError
     from mjstamp.scenes import Scene
     from mjstamp.solve import solve
 
@@ -572,14 +581,8 @@ def solve_in_process(path: str | Path) -> tuple[str, str, bool]:
             if task is None:
                 return "skipped", "no joints to vary", False
             result = solve(task, SOLVE_CONFIG, progress=False)
-    except MjstampError as e:
-        if "\n" in str(e) or not str(e).strip():
-            return "crash", f"MjstampError not on one line: {str(e)!r}", False
-        return "rejected", str(e), False
     except Exception as e:  # noqa: BLE001 - any other exception is what the fuzzer hunts
-        frame = traceback.extract_tb(e.__traceback__)[-1]
-        where = f"{Path(frame.filename).name}:{frame.lineno}"
-        return "crash", f"{type(e).__name__} at {where}: {_one_line(e)}", True
+        return _raised(e)
     printed = out.getvalue() + err.getvalue()
     if "Traceback" in printed:
         return "crash", f"printed a traceback: {_one_line(printed[-300:])}", True

@@ -30,7 +30,7 @@ import numpy as np
 
 from mjstamp import __version__
 from mjstamp.errors import MjstampError
-from mjstamp.fileio import write_atomic
+from mjstamp.fileio import probe, write_atomic
 from mjstamp.svgd import IterationRecord, LoopSnapshot
 
 __all__ = ["FILENAME", "Checkpointer", "Interrupted", "describe", "fingerprint", "load",
@@ -79,11 +79,7 @@ def save(path: Path, snap: LoopSnapshot, meta: Mapping[str, Any]) -> None:
 
 def _open(out: str | Path) -> tuple[Path, Any]:
     path = Path(out) / FILENAME
-    try:
-        present = path.is_file()
-    except OSError as e:  # a name too long, a path through a file
-        raise MjstampError(f"{str(out)[:200]!r} cannot be read: {e.strerror or e}") from None
-    if not present:
+    if not probe(path.is_file, out):
         raise MjstampError(f"{str(Path(out))!r} holds no {FILENAME} (no unfinished solve to "
                            "resume there)")
     try:

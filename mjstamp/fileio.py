@@ -29,3 +29,27 @@ def write_atomic(path: Path, write: Callable[[BinaryIO], object]) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def probe(test: Callable[[], bool], shown: str | os.PathLike, what: str = "") -> bool:
+    """`test()` (say `path.is_file`), with an OSError from the path itself as one line.
+
+    A name too long for the filesystem, or a path running through a file, makes
+    `is_file` / `exists` raise instead of answering False.
+
+    Args:
+      test: the check, e.g. `path.exists`.
+      shown: the path the message names.
+      what: what it is, before the path ("skill bank ", "results directory ").
+
+    Raises:
+      MjstampError: "{what}'{shown}' cannot be read: {reason}".
+    """
+    from mjstamp.errors import MjstampError  # noqa: PLC0415 - fileio imports nothing of ours
+
+    try:
+        return test()
+    except OSError as e:
+        raise MjstampError(f"{what}{str(shown)[:200]!r} cannot be read: "
+                           f"{e.strerror or e}") from None
+

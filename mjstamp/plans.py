@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
-from mjstamp.fileio import write_atomic
+from mjstamp.fileio import probe, write_atomic
 from mjstamp.scenes import mjx
 from mjstamp.scenes.fidelity import describe
 from mjstamp.scenes.rollout import replay as replay_c
@@ -532,12 +532,7 @@ def _checkpoint_task(checkpoint: Path) -> object:
 def _read_summary(path: Path) -> dict:
     """plans.json, parsed and checked: one MjstampError line for any damage."""
     plans = path / "plans.json"
-    try:
-        complete = plans.is_file()
-    except OSError as e:  # a name too long, a path through a file
-        raise MjstampError(f"results directory {str(path)[:200]!r} cannot be read: "
-                           f"{e.strerror or e}") from None
-    if not complete:
+    if not probe(plans.is_file, path, "results directory "):
         checkpoint = path / "checkpoint.npz"
         if checkpoint.is_file():
             task = _task_word(_checkpoint_task(checkpoint))

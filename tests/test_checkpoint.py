@@ -1,6 +1,5 @@
 """Checkpoint and resume of a solve: kill -9, SIGTERM, refusals, reproducible plans.json."""
 
-import json
 import os
 import signal
 import subprocess
@@ -38,17 +37,9 @@ except KeyboardInterrupt as e:
 r.save(out, figures=False)
 """
 
-VOLATILE = ("wall_time_s", "timings", "iteration_seconds", "compiles")
-
-
-def _stable(out: Path) -> dict:
-    """plans.json without its timings."""
-    data = json.loads((out / "plans.json").read_text())
-    for key in VOLATILE:
-        data.pop(key)
-    data["fidelity"].pop("us_per_particle_step")
-    data["screen"].pop("seconds")
-    return data
+# plans.json without what varies between runs (timings): the kill-and-resume benchmark's.
+sys.path.insert(0, str(TESTS.parent))
+from benchmarks.kill_resume import stable_plans as _stable  # noqa: E402
 
 
 def _start(out: Path, *extra: str) -> subprocess.Popen:

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
-from mjstamp.fileio import write_atomic
+from mjstamp.fileio import probe, write_atomic
 from mjstamp.skills.dmp import DMP, DMPConfig
 
 __all__ = [
@@ -153,12 +153,7 @@ def load(path: str | os.PathLike, *, fingerprint: str | None = None) -> SkillBan
       MjstampError: an unreadable file, another format, or a newer version.
     """
     path = Path(path)
-    try:
-        present = path.is_file()
-    except OSError as e:  # a name too long, a path through a file
-        raise MjstampError(f"skill bank {str(path)[:200]!r} cannot be read: "
-                           f"{e.strerror or e}") from None
-    if not present:
+    if not probe(path.is_file, path, "skill bank "):
         raise MissingSkillBank(f"skill bank {str(path)!r}: no such file")
     unreadable = f"skill bank {str(path)!r} is unreadable"
     fix = "delete or move it to refit"

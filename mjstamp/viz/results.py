@@ -11,6 +11,7 @@ import numpy as np
 
 from mjstamp import plans as plans_io
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.fileio import probe
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,12 +73,7 @@ def load_results(path: str | os.PathLike, *, task: str | None = None) -> Results
         naming the file, what is wrong and what to do).
     """
     path = Path(path)
-    try:
-        exists = path.exists()
-    except OSError as e:  # a name too long, a path through a file
-        raise MjstampError(f"results directory {str(path)[:200]!r} cannot be read: "
-                           f"{e.strerror or e}") from None
-    if not exists:
+    if not probe(path.exists, path, "results directory "):
         raise MjstampError(f"results directory {str(path)!r} does not exist")
     if not path.is_dir():
         raise MjstampError(f"{str(path)!r} is not a directory (expected a results directory)")
