@@ -31,7 +31,9 @@ DEFAULT_CACHE = Path.home() / ".cache" / "mjstamp" / "jax"
 
 
 def configure(*, precision: str = "float64", compilation_cache: bool = True,
-              devices: int | None = None, strict_devices: bool = True) -> None:
+              devices: int | None = None, strict_devices: bool = True,
+              coordinator: str | None = None, num_processes: int = 1, process_id: int = 0,
+              coordinator_timeout_s: float = 60.0) -> None:
     """Process-wide JAX settings: precision and the persistent compilation cache.
 
     N.B. float64 is the default precision: float32 reverse-mode gradients
@@ -49,6 +51,15 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
         before JAX starts (the first array). None leaves XLA's default (1).
       strict_devices: when JAX already runs with fewer devices, raise (True)
         or keep them (False).
+      coordinator: "host:port" of process 0, to run one solve over several
+        processes (machines, or processes of one machine): each process calls
+        `configure` with the same coordinator and num_processes and its own
+        process_id, then runs the same script; their devices form one set
+        that `solve` shards the particles over, and process 0 writes the
+        results (`mjstamp.parallel.join_processes`). None: this process alone.
+      num_processes: processes in the run (with `coordinator`).
+      process_id: this process's index, 0..num_processes-1 (0 hosts the coordinator).
+      coordinator_timeout_s: how long to wait for the coordinator.
     """
     from mjstamp.errors import MjstampError  # noqa: PLC0415
 
@@ -58,6 +69,13 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
         from mjstamp.parallel import request_host_devices  # noqa: PLC0415
 
         request_host_devices(devices, strict=strict_devices)
+    if coordinator is not None:
+        from mjstamp.parallel import join_processes  # noqa: PLC0415
+
+        join_processes(coordinator, num_processes, process_id, timeout_s=coordinator_timeout_s)
+    elif (num_processes, process_id) != (1, 0):
+        raise MjstampError(f"num_processes={num_processes!r}, process_id={process_id!r} need "
+                           "a coordinator (host:port of process 0)")
     import jax  # noqa: PLC0415 - importing mjstamp must not import JAX's backends
 
     jax.config.update("jax_enable_x64", precision == "float64")

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from mjstamp import __version__
+from mjstamp import __version__, parallel
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import probe, write_atomic
 from mjstamp.svgd import IterationRecord, LoopSnapshot
@@ -201,7 +201,8 @@ class Checkpointer:
         if self.signal is None and now - self._last < self.every_s:
             return
         snap = make()
-        save(self.path, snap, self.meta)
+        if parallel.is_lead():  # N.B. several processes share one results directory
+            save(self.path, snap, self.meta)
         self.saved += 1
         self._last = time.monotonic()
         where = f"{_PHASES[snap.phase]} iteration {snap.iteration}"

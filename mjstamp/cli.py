@@ -15,11 +15,41 @@ from mjstamp.errors import MjstampError
 
 
 def configure_jax(*, precision: str = "float64", devices: int | None = None,
-                  strict_devices: bool = True) -> None:
-    """The CLI's JAX settings: `mjstamp.configure` (float64, compilation cache, devices)."""
+                  strict_devices: bool = True, processes: dict | None = None) -> None:
+    """The CLI's JAX settings: `mjstamp.configure` (precision, cache, devices, processes)."""
     import mjstamp
 
-    mjstamp.configure(precision=precision, devices=devices, strict_devices=strict_devices)
+    mjstamp.configure(precision=precision, devices=devices, strict_devices=strict_devices,
+                      **(processes or {}))
+
+
+def _stdout_for_python_only() -> None:
+    """Sends what C++ writes to stdout (Gloo's connection lines) to stderr instead.
+
+    N.B. a run over several processes makes Gloo print to file descriptor 1,
+    which would break `--json`'s one object on stdout; Python's `print` keeps
+    the real stdout.
+    """
+    sys.stdout.flush()
+    real = os.dup(1)
+    os.dup2(2, 1)
+    sys.stdout = os.fdopen(real, "w", buffering=1, closefd=True)
+
+
+def _processes(args) -> dict | None:
+    """`configure`'s coordinator settings from --coordinator/--num-processes/--process-id."""
+    coordinator = getattr(args, "coordinator", None)
+    num, pid = getattr(args, "num_processes", None), getattr(args, "process_id", None)
+    if coordinator is None:
+        if num is not None or pid is not None:
+            raise MjstampError("--num-processes and --process-id need --coordinator HOST:PORT "
+                               "(process 0's address)")
+        return None
+    if num is None or pid is None:
+        raise MjstampError("--coordinator needs --num-processes N and --process-id I "
+                           "(0 for the process that hosts the coordinator)")
+    return {"coordinator": coordinator, "num_processes": num, "process_id": pid,
+            "coordinator_timeout_s": args.coordinator_timeout}
 
 
 def _devices(text: str) -> int | str:
@@ -36,18 +66,28 @@ def _devices(text: str) -> int | str:
     return value
 
 
-def _host_devices(requested) -> int | None:
-    """How many host devices to ask XLA for: N, or for 'auto' one per core (at most 8)."""
+def _host_devices(requested, processes: dict | None = None) -> int | None:
+    """How many host devices to ask XLA for: N, or for 'auto' one per core (at most 8).
+
+    N.B. processes on one machine (a loopback coordinator) share its cores.
+    """
     if requested is None:
         return None
     cores = os.cpu_count() or 1
     if requested == "auto":
-        return max(1, min(cores, 8))
+        share = 1
+        if processes and processes["coordinator"].rpartition(":")[0] in _LOOPBACK:
+            share = processes["num_processes"] if isinstance(processes["num_processes"],
+                                                             int) else 1
+        return max(1, min(cores, 8) // max(1, share))
     if requested > cores:
         # N.B. XLA makes as many host devices as asked; more than cores only slows.
         raise MjstampError(f"--devices {requested}: this machine has {cores} CPU cores "
                            f"(host devices: at most {cores})")
     return requested
+
+
+_LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
 
 
 def _load_scene(name: str, **kwargs):
@@ -277,10 +317,17 @@ def _cmd_solve(args) -> int:
 
         from mjstamp.parallel import check_devices
 
-        k = len(jax.devices()) if args.devices == "auto" else args.devices
+        # N.B. over several processes --devices is each one's count; the particles
+        # are sharded over all of them.
+        k = (len(jax.devices()) if args.devices == "auto" or jax.process_count() > 1
+             else args.devices)
         check_devices(k)
         overrides["devices"] = k
+    from mjstamp import parallel
+
     out, resume = _results_dir(args)
+    if out and not resume and not parallel.is_lead():
+        out = None  # N.B. process 0 writes --out; a resume reads the checkpoint everywhere
     if out:
         plans.check_writable(out)
     task, config = tasks.load(args.task, **overrides)
@@ -289,6 +336,8 @@ def _cmd_solve(args) -> int:
     result = solve(task, config, seed=args.seed, progress=progress, checkpoint_dir=out,
                    resume=resume, checkpoint_every_s=every,
                    resume_hint=_resume_hint(args.argv, out) if out else "")
+    if not parallel.is_lead():
+        return 0  # N.B. one of several processes: process 0 prints and writes for all
     coverage = None
     if modes.supports_sweep(task) and not args.no_coverage:
         truth = modes.sweep(task, progress=progress)
@@ -374,6 +423,24 @@ def _seed(text: str) -> int:
     return value
 
 
+def _count(low: int, what: str):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: expected an integer "
+                                             f">= {low}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{what} {value} must be >= {low}")
+        return value
+
+    return parse
+
+
+_positive_int = _count(1, "process count")
+_nonnegative_int = _count(0, "process id")
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its errors on one line (`mjstamp solve: error: ...`), exit status 2."""
 
@@ -435,6 +502,17 @@ def build_parser() -> argparse.ArgumentParser:
                        help="shard the particles over N devices: CPU host devices (one per "
                        "core) or local GPUs; 'auto' (default): every one (CPU: one per core, "
                        "at most 8)")
+    solve.add_argument("--coordinator", metavar="HOST:PORT",
+                       help="run one solve over several processes (machines, or processes "
+                       "of one machine): process 0 listens at HOST:PORT, the others join it; "
+                       "each runs the same command with its own --process-id, --devices "
+                       "counts its own; process 0 prints and writes")
+    solve.add_argument("--num-processes", type=_positive_int, metavar="N",
+                       help="processes in the run (with --coordinator)")
+    solve.add_argument("--process-id", type=_nonnegative_int, metavar="I",
+                       help="this process's index, 0..N-1 (with --coordinator)")
+    solve.add_argument("--coordinator-timeout", type=float, default=60.0, metavar="S",
+                       help="seconds to wait for the coordinator (default 60)")
     solve.add_argument("--no-coverage", action="store_true",
                        help="skip the ground-truth sweep behind the coverage figure")
     solve.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -480,9 +558,13 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else 2
     args.argv = argv
     try:
+        processes = _processes(args)
+        if processes:
+            _stdout_for_python_only()
         configure_jax(precision=getattr(args, "precision", "float64"),
-                      devices=_host_devices(getattr(args, "devices", None)),
-                      strict_devices=getattr(args, "devices", None) != "auto")
+                      devices=_host_devices(getattr(args, "devices", None), processes),
+                      strict_devices=getattr(args, "devices", None) != "auto",
+                      processes=processes)
         return args.func(args)
     except MjstampError as e:
         print(f"mjstamp: error: {e}", file=sys.stderr)

@@ -37,7 +37,9 @@ from jax.sharding import PartitionSpec as P
 
 from mjstamp.errors import MjstampError
 
-__all__ = ["AXIS", "check_devices", "particle_mesh", "request_host_devices", "shard_particles"]
+__all__ = ["AXIS", "check_devices", "fetch", "is_lead", "join_processes", "local_device",
+           "particle_mesh",
+           "replicate_outputs", "request_host_devices", "shard_particles"]
 
 AXIS = "particles"
 _FLAG = "--xla_force_host_platform_device_count"
@@ -72,6 +74,116 @@ def request_host_devices(n: int, *, strict: bool = True) -> None:
     os.environ["XLA_FLAGS"] = " ".join([*flags, f"{_FLAG}={n}"])
 
 
+def join_processes(coordinator: str, num_processes: int, process_id: int, *,
+                   timeout_s: float = 60.0) -> None:
+    """Makes this process one of `num_processes` whose devices form one set (jax.distributed).
+
+    Every process runs the same solve: each rolls out the particles on its own
+    devices, the kernel sees all of them, and every process ends with the same
+    plans. Process 0 hosts the coordinator; only it prints and writes results
+    (`is_lead`). On CPUs the processes exchange arrays over Gloo (TCP).
+
+    Args:
+      coordinator: "host:port" of process 0 (process 0 listens there).
+      num_processes: processes in the run, >= 1.
+      process_id: this process's index in [0, num_processes).
+      timeout_s: how long a process waits for the coordinator (and process 0
+        for the others) before giving up.
+
+    Raises:
+      MjstampError: a malformed address or index, JAX already started, process
+        0 cannot listen on the port, or another process cannot reach it
+        within `timeout_s`: one line each (N.B. checked here because a failed
+        `jax.distributed.initialize` aborts the whole process).
+    """
+    host, port = _address(coordinator)
+    if isinstance(num_processes, bool) or not isinstance(num_processes, int) or num_processes < 1:
+        raise MjstampError(f"num_processes={num_processes!r} must be an integer >= 1")
+    if (isinstance(process_id, bool) or not isinstance(process_id, int)
+            or not 0 <= process_id < num_processes):
+        raise MjstampError(f"process_id={process_id!r} must be an integer in "
+                           f"[0, {num_processes})")
+    if not timeout_s > 0:
+        raise MjstampError(f"timeout_s={timeout_s!r} must be > 0")
+    from jax._src import xla_bridge  # noqa: PLC0415
+
+    if xla_bridge.backends_are_initialized():
+        raise MjstampError("join_processes must come before JAX starts (first thing in a "
+                           "script: mjstamp.configure(coordinator=..., ...))")
+    if process_id == 0:
+        _check_listen(host, port)
+    else:
+        _wait_reachable(host, port, timeout_s)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(f"{host}:{port}", num_processes=num_processes,
+                               process_id=process_id,
+                               initialization_timeout=max(1, int(timeout_s)))
+
+
+def _address(coordinator) -> tuple[str, int]:
+    """("host", port) from "host:port", or a one-line MjstampError."""
+    text = str(coordinator)
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise MjstampError(f"coordinator={text!r} must be HOST:PORT with a port in 1..65535 "
+                           "(e.g. 127.0.0.1:4321)")
+    return host.strip("[]"), int(port)
+
+
+def _check_listen(host: str, port: int) -> None:
+    import socket  # noqa: PLC0415
+
+    try:
+        with socket.create_server(("", port), reuse_port=False):
+            pass
+    except OSError as e:
+        raise MjstampError(f"coordinator {host}:{port}: process 0 cannot listen on port "
+                           f"{port} ({e.strerror or 'refused'}); pick a free port") from None
+
+
+def _wait_reachable(host: str, port: int, timeout_s: float) -> None:
+    import socket  # noqa: PLC0415
+    import time  # noqa: PLC0415
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=min(5.0, timeout_s)):
+                return
+        except OSError as e:
+            if time.monotonic() >= deadline:
+                raise MjstampError(f"coordinator {host}:{port} not reachable within "
+                                   f"{timeout_s:g} s ({e.strerror or e}); start process 0 "
+                                   "first, with the same --coordinator") from None
+            time.sleep(0.2)
+
+
+def local_device():
+    """This process's first device: where unsharded work (one scene's model, a batch) lives.
+
+    N.B. not `jax.devices()[0]` (MJX's default), which in a run over several
+    processes is process 0's device, out of reach of the others.
+    """
+    return jax.local_devices()[0]
+
+
+def is_lead() -> bool:
+    """Whether this process prints and writes results: always, unless it is not process 0."""
+    return jax.process_index() == 0
+
+
+def fetch(tree):
+    """`jax.device_get` that also reads arrays spread over several processes' devices."""
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable and not x.is_fully_replicated:
+            from jax.experimental import multihost_utils  # noqa: PLC0415
+
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return x
+
+    return jax.device_get(jax.tree.map(one, tree))
+
+
 def check_devices(k: int) -> list:
     """The first k devices, or a one-line MjstampError naming how many there are."""
     if isinstance(k, bool) or not isinstance(k, int) or k < 1:
@@ -93,6 +205,19 @@ def particle_mesh(k: int) -> Mesh:
 def replicated(mesh: Mesh) -> NamedSharding:
     """The sharding that holds a whole array on every device of `mesh`."""
     return NamedSharding(mesh, P())
+
+
+def replicate_outputs(fn: Callable, k: int) -> Callable:
+    """`fn` whose outputs are whole on each of the first k devices (k > 1; else `fn`).
+
+    N.B. the STAMP step's outputs (particles, optimizer state, diagnostics):
+    every process of a run over several (`join_processes`) can then read them
+    without a collective, so the loop and its checkpoints stay per-process.
+    """
+    if k == 1:
+        return fn
+    place = replicated(particle_mesh(k))
+    return lambda *args: jax.lax.with_sharding_constraint(fn(*args), place)
 
 
 def shard_particles(fn: Callable, k: int) -> Callable:

@@ -27,6 +27,7 @@ import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.fileio import probe, write_atomic
+from mjstamp.parallel import local_device
 from mjstamp.scenes import mjx
 from mjstamp.scenes.fidelity import describe
 from mjstamp.scenes.rollout import replay as replay_c
@@ -94,7 +95,7 @@ def _kinematics_fn(problem):
     key = (problem.fingerprint, problem.scene.dtype)
     if key not in _KINEMATICS:
         scene = problem.scene
-        d0 = mjx.make_data(scene.mx)
+        d0 = mjx.make_data(scene.mx, device=local_device())
         pairs = problem.contact_pairs()
         fns = [problem.distance_fn(*p) for p in pairs]
 
@@ -159,7 +160,7 @@ def _state_cost_fn(problem):
     key = (problem.fingerprint, problem.scene.dtype)
     if key not in _STATE_COSTS:
         scene = problem.scene
-        d0 = mjx.make_data(scene.mx)
+        d0 = mjx.make_data(scene.mx, device=local_device())
 
         def poses(qpos):
             d = mjx.kinematics(scene.mx, d0.replace(qpos=qpos))

@@ -252,11 +252,16 @@ class SolveResult:
         Every file is written atomically, plans.json last (a directory with one
         is complete). `mjstamp.load(out)` reads it back; `mjstamp view` plays it.
 
+        N.B. in a solve over several processes (`mjstamp.parallel.join_processes`)
+        every process holds the same result and only process 0 writes.
+
         Returns:
-          The paths written.
+          The paths written (none on other processes than 0).
         """
         from mjstamp import figures as figures_mod  # noqa: PLC0415 - matplotlib only here
 
+        if not parallel.is_lead():
+            return []
         out = plans_mod.check_writable(out)
         written = plans_mod.save(out, self.summary(coverage), self.arrays(),
                                  model=self.problem.scene.m)
@@ -434,8 +439,8 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
         svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),
         sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
         progress=progress,
-        jit=lambda step, state, key, phase: jit(step, f"stamp-{phase} {cfg} on {devices}",
-                                                state, key),
+        jit=lambda step, state, key, phase: jit(parallel.replicate_outputs(step, devices),
+                                                f"stamp-{phase} {cfg} on {devices}", state, key),
         redraw=problem.init,
         checkpoint=checkpointer, resume=resume,
         **discrete,
@@ -517,6 +522,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     """`solve`'s body."""
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
         raise MjstampError(f"seed={seed!r} must be an integer in 0..{MAX_SEED}")
+    if progress is None and not parallel.is_lead():
+        progress = False  # N.B. one of several processes: process 0 speaks for all
     problem = as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     devices = cfg.devices or jax.device_count()

@@ -26,6 +26,7 @@ from pathlib import Path
 import jax
 
 from mjstamp.fileio import write_atomic
+from mjstamp.parallel import local_device
 
 DEFAULT_DIR = Path.home() / ".cache" / "mjstamp" / "trace"
 
@@ -142,7 +143,7 @@ def _strong(x, place=None):
         if getattr(x, "sharding", None) != place:
             x = jax.device_put(x, place)
     elif not getattr(x, "committed", False):
-        x = jax.device_put(x, jax.devices()[0])
+        x = jax.device_put(x, local_device())
     return x
 
 

@@ -12,6 +12,7 @@ import mujoco.rollout
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.parallel import local_device
 from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
 
@@ -114,7 +115,7 @@ def build_rollout(
     # N.B. built eagerly even when first asked for inside a trace (a task's log
     # posterior under jit): a traced d0 memoised in the scene would leak.
     with jax.ensure_compile_time_eval():
-        d0 = cast_floats(mjx.make_data(mx), dtype)
+        d0 = cast_floats(mjx.make_data(mx, device=local_device()), dtype)
 
     mode = scene.grad_options.gradient
 

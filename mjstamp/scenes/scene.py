@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.parallel import local_device
 from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.collisions import check_collidable
@@ -290,7 +291,7 @@ class Scene:
         gradsafe.patch_mjx()
         self.dtype = jnp.float64 if precision == "float64" else jnp.float32
         self.precision = precision
-        self.mx = cast_floats(mjx.put_model(self.m_grad), self.dtype)
+        self.mx = cast_floats(mjx.put_model(self.m_grad, device=local_device()), self.dtype)
         self._names = {
             kind: {
                 mujoco.mj_id2name(self.m, obj, i): i
@@ -414,7 +415,7 @@ class Scene:
         other = copy.copy(self)
         other.grad_options = options
         other.m_grad = options.apply(self.m)
-        other.mx = cast_floats(mjx.put_model(other.m_grad), self.dtype)
+        other.mx = cast_floats(mjx.put_model(other.m_grad, device=local_device()), self.dtype)
         other._rollouts = {}
         return other
 

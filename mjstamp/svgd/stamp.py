@@ -25,6 +25,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from mjstamp.parallel import fetch
 from mjstamp.svgd._checks import check_particles
 from mjstamp.svgd._jacobian import JacobianMode, check_mode
 from mjstamp.svgd.kernels import Kernel
@@ -517,7 +518,7 @@ class _Loop:
 
     def snapshot(self, phase: int, t: int, state) -> LoopSnapshot:
         """The `LoopSnapshot` after iteration t of `phase` (fetches the state to the host)."""
-        particles, leaves, key_data = jax.device_get(
+        particles, leaves, key_data = fetch(
             (state.particles, jax.tree.leaves(state.opt_state), jax.random.key_data(self.key))
         )
         r = self.rescue
@@ -650,7 +651,7 @@ class _Rescue:
 
     def __call__(self, state, info: StepInfo, score_norm, threshold: float, key):
         """(state with the particles stalled `window` times re-drawn, how many)."""
-        logp = np.asarray(jax.device_get(info.logdensity), dtype=float)
+        logp = np.asarray(fetch(info.logdensity), dtype=float)
         finite = np.isfinite(logp)
         median = float(np.median(logp[finite])) if finite.any() else math.inf
         flat = ~(score_norm > threshold)  # NaN counts as no gradient
@@ -711,7 +712,7 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
     """
     # N.B. the fields a StepInfo carries are copied by name; the rest the loop fills.
     copied = {name: getattr(info, name) for name in _FROM_STEP}
-    record, score_norm = jax.device_get((
+    record, score_norm = fetch((
         IterationRecord(**{**dict.fromkeys(IterationRecord._fields), **copied})._replace(
             phase=phase, rescued=0, nonfinite_redrawn=0),
         info.score_norm,
