@@ -208,13 +208,14 @@ def replicated(mesh: Mesh) -> NamedSharding:
 
 
 def replicate_outputs(fn: Callable, k: int) -> Callable:
-    """`fn` whose outputs are whole on each of the first k devices (k > 1; else `fn`).
+    """`fn` whose outputs are whole on each of the first k devices, when they span processes.
 
     N.B. the STAMP step's outputs (particles, optimizer state, diagnostics):
     every process of a run over several (`join_processes`) can then read them
     without a collective, so the loop and its checkpoints stay per-process.
+    Within one process `fn` is returned as it is: XLA may keep them sharded.
     """
-    if k == 1:
+    if k == 1 or all(d.process_index == jax.process_index() for d in check_devices(k)):
         return fn
     place = replicated(particle_mesh(k))
     return lambda *args: jax.lax.with_sharding_constraint(fn(*args), place)

@@ -308,3 +308,26 @@ def test_sgd_step_forward_mode_scores_equal_reverse_mode():
            for mode in ("rev", "fwd")]
     np.testing.assert_allclose(out[0][0].particles, out[1][0].particles, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(out[0][1].logdensity, out[1][1].logdensity)
+
+
+def test_sgd_step_auto_mode_is_forward_for_d_up_to_2_else_reverse():
+    """'auto': forward mode (d tangents) when d <= 2, a pullback otherwise."""
+    import optax
+
+    from mjstamp.svgd import build_sgd_step, init
+
+    # N.B. a custom_vjp function has no forward-mode derivative: jvp through it raises.
+    @jax.custom_vjp
+    def logp(x):
+        return -jnp.sum(x**2, axis=1)
+
+    logp.defvjp(lambda x: (logp(x), x), lambda x, g: (-2.0 * x * g[:, None],))
+    opt = optax.sgd(0.1)
+    x3 = jax.random.normal(jax.random.key(0), (4, 3))
+    state, _ = build_sgd_step(logp, opt)(init(x3, opt), jax.random.key(1))
+    np.testing.assert_allclose(state.particles, x3 * 0.8, rtol=1e-12)
+    x2 = x3[:, :2]
+    with pytest.raises(TypeError, match="custom_vjp"):
+        build_sgd_step(logp, opt)(init(x2, opt), jax.random.key(1))
+    state, _ = build_sgd_step(logp, opt, jacobian="rev")(init(x2, opt), jax.random.key(1))
+    np.testing.assert_allclose(state.particles, x2 * 0.8, rtol=1e-12)

@@ -100,7 +100,8 @@ class StampConfig:
       seed: seeds the PRNG keys handed to the steps and to a callable
         `initial_particles`; the same seed gives the same run.
       jacobian: 'auto', 'fwd' or 'rev': how the SVGD step differentiates a log
-        density that also returns kernel features.
+        density that also returns kernel features, and how the SGD step
+        differentiates its own (see `build_sgd_step`).
       rescue_window: 0 (off) or R >= 1: in the SVGD phase, a particle that has
         stalled for R consecutive iterations is re-drawn by `run_stamp`'s
         `redraw` (and its optimizer moments zeroed). Stalled: its score norm is
@@ -484,7 +485,8 @@ def _phase_steps(
         svgd_step = build_dsvgd_step(
             logdensity_fn, log_target_fn, kernel, svgd_optimizer, jacobian=config.jacobian
         )
-    sgd_step = build_sgd_step(sgd_logdensity_fn or logdensity_fn, sgd_optimizer)
+    sgd_step = build_sgd_step(sgd_logdensity_fn or logdensity_fn, sgd_optimizer,
+                              jacobian=config.jacobian)
     return (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer)
 
 

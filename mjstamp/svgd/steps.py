@@ -527,7 +527,7 @@ def build_sgd_step(
     logdensity_fn: LogDensityFn,
     optimizer: optax.GradientTransformation,
     *,
-    jacobian: JacobianMode = "rev",
+    jacobian: JacobianMode = "auto",
 ) -> Callable[[SVGDState, jax.Array], tuple[SVGDState, StepInfo]]:
     """Builds the SGD refinement step θ_i ← θ_i + ε ∇log ρ(θ_i) (through `optimizer`).
 
@@ -537,9 +537,12 @@ def build_sgd_step(
     Args:
       logdensity_fn: batched log ρ, (n, d) -> (n,) or ((n,), (n, f)).
       optimizer: optax transformation.
-      jacobian: how the scores are computed: 'rev' (one pullback; any d) or
-        'fwd' (d batched tangents; cheaper through a rollout when d is 1-3,
-        e.g. billiards' d = 2). 'auto' means 'rev' here.
+      jacobian: how the scores are computed: 'rev' (one pullback; any d),
+        'fwd' (d batched tangents) or 'auto': 'fwd' when d <= 2, else 'rev'.
+        N.B. a pullback through a rollout costs several forward passes, a
+        tangent about one: billiards' d = 2 reverse-mode value and score of
+        128 particles take 0.45 s against 0.37 s forward-mode, and compile in
+        26 s against 13 s (2-core CPU).
 
     Returns:
       A jit-able `step(state, key) -> (state, StepInfo)`.
@@ -552,7 +555,9 @@ def build_sgd_step(
     def step(state: SVGDState, key: jax.Array) -> tuple[SVGDState, StepInfo]:
         del key
         check_particles(state.particles, min_particles=1)
-        if jacobian == "fwd":
+        mode = jacobian if jacobian != "auto" else ("fwd" if state.particles.shape[1] <= 2
+                                                    else "rev")
+        if mode == "fwd":
             n = state.particles.shape[0]
             out, jac = value_and_batched_jacobian(
                 lambda p: _split_output(logdensity_fn(p), n)[0][:, None], state.particles, "fwd"
