@@ -357,6 +357,49 @@ def _cmd_solve(args) -> int:
     return 0
 
 
+def _methods() -> tuple[str, ...]:
+    from mjstamp.baselines.compare import ALL
+
+    return ALL
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid cap {text!r}: expected seconds > 0") from None
+    if not value > 0 or value != value or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"cap {text} must be a finite number of seconds > 0")
+    return value
+
+
+def _cmd_compare(args) -> int:
+    from mjstamp import tasks
+    from mjstamp.baselines.compare import compare, format_table, parse_methods
+
+    methods = parse_methods(args.methods)
+    overrides = _parse_settings(args.task, args.set or [])
+    overrides.update(_task_options(args, args.task))
+    if args.devices is not None:
+        import jax
+
+        from mjstamp.parallel import check_devices
+
+        k = len(jax.devices()) if args.devices == "auto" else args.devices
+        check_devices(k)
+        overrides["devices"] = k
+    tasks.load(args.task, **overrides)  # N.B. a bad task or setting fails before any work
+    say = None if args.quiet else (lambda msg: print(f"[compare] {msg}", file=sys.stderr,
+                                                     flush=True))
+    rows = compare(lambda: tasks.load(args.task, **overrides), methods=methods,
+                   seeds=args.seeds, cap_s=args.cap, say=say)
+    if args.json:
+        print(json.dumps({args.task: rows}))
+    else:
+        print(format_table(args.task, rows))
+    return 0
+
+
 def _cmd_view(args) -> int:
     import signal
     import time
@@ -390,16 +433,17 @@ def _cmd_view(args) -> int:
         playback.close()
 
 
-def _add_task_contributions(sub, solve) -> None:
-    """Flags of `solve` and commands that registered tasks contribute."""
+def _add_task_contributions(sub, *solvers) -> None:
+    """Flags of `solve` (and `compare`) and commands that registered tasks contribute."""
     from mjstamp import tasks
 
     for entry in tasks.entries().values():
         for option in entry.options:
             # N.B. parsed after argparse (in _task_options): argparse's own errors
             # take two lines (usage, then the error); ours take one.
-            solve.add_argument(option.flag, dest=option.key, metavar=option.metavar,
-                               help=option.help)
+            for parser in solvers:
+                parser.add_argument(option.flag, dest=option.key, metavar=option.metavar,
+                                    help=option.help)
         for command in entry.commands:
             parser = sub.add_parser(command.name, help=command.help)
             command.add_arguments(parser)
@@ -538,7 +582,26 @@ def build_parser() -> argparse.ArgumentParser:
                       help="do not open the viewer in a browser")
     view.set_defaults(func=_cmd_view)
 
-    _add_task_contributions(sub, solve)
+    compare = sub.add_parser(
+        "compare", help="time STAMP and the baselines (enumerate, blocking, cem) to the "
+        "distinct verified task plans STAMP's default run finds (Table I's layout)")
+    compare.add_argument("task", help="registered task name (see `mjstamp tasks`)")
+    compare.add_argument("--methods", default=",".join(_methods()), metavar="M,M",
+                         help=f"comma-separated, of {', '.join(_methods())} (default: all)")
+    compare.add_argument("--seeds", type=_count(1, "seed count"), default=3, metavar="S",
+                         help="seeds 0..S-1 (default 3)")
+    compare.add_argument("--cap", type=_seconds, default=600.0, metavar="SECONDS",
+                         help="each baseline's wall-time cap per seed (default 600)")
+    compare.add_argument("--set", action="append", metavar="KEY=VALUE",
+                         help="override a task or solve setting (repeatable), as for solve")
+    compare.add_argument("--devices", type=_devices, default="auto", metavar="N",
+                         help="devices every method's batched rollouts are sharded over "
+                         "(as for solve)")
+    compare.add_argument("--json", action="store_true", help="print one JSON object")
+    compare.add_argument("--quiet", action="store_true", help="no status lines on stderr")
+    compare.set_defaults(func=_cmd_compare)
+
+    _add_task_contributions(sub, solve, compare)
 
     tasks = sub.add_parser("tasks", help="list the registered tasks")
     tasks.add_argument("--json", action="store_true")

@@ -225,8 +225,9 @@ def shard_particles(fn: Callable, k: int) -> Callable:
     """`fn` over (n, d) particles, evaluated k-ways sharded along the particles.
 
     Args:
-      fn: a batched function of (n, d) particles whose outputs are arrays (or
-        pytrees of arrays) with the particles first, (n, ...).
+      fn: a batched function of (n, d) particles (and of further arguments,
+        which every device gets whole) whose outputs are arrays (or pytrees of
+        arrays) with the particles first, (n, ...).
       k: devices; 1 returns `fn` itself.
 
     Returns:
@@ -236,16 +237,20 @@ def shard_particles(fn: Callable, k: int) -> Callable:
     if k == 1:
         return fn
     mesh = particle_mesh(k)
-    # N.B. check_vma=False: MJX's lax.cond branches mix per-device and replicated
-    # values, which the varying-axes check rejects though each device is independent.
-    inner = jax.shard_map(fn, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS), check_vma=False)
+    cache: dict[int, Callable] = {}
 
-    def sharded(x):
+    def sharded(x, *rest):
+        """`fn(x, *rest)`: x split along the particles, `rest` (pytrees) whole on each device."""
+        if len(rest) not in cache:
+            # N.B. check_vma=False: MJX's lax.cond branches mix per-device and replicated
+            # values, which the varying-axes check rejects though each device is independent.
+            cache[len(rest)] = jax.shard_map(fn, mesh=mesh, in_specs=(P(AXIS), *[P()] * len(rest)),
+                                             out_specs=P(AXIS), check_vma=False)
         n = x.shape[0]
         pad = -n % k
         if pad:  # copies of the last particle; their results are dropped below
             x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad, *x.shape[1:]))])
-        out = inner(x)
+        out = cache[len(rest)](x, *rest)
         return jax.tree.map(lambda a: a[:n], out) if pad else out
 
     return sharded
