@@ -337,7 +337,10 @@ def _cmd_solve(args) -> int:
                    resume=resume, checkpoint_every_s=every,
                    resume_hint=_resume_hint(args.argv, out) if out else "")
     if not parallel.is_lead():
-        return 0  # N.B. one of several processes: process 0 prints and writes for all
+        # N.B. one of several processes: process 0 prints and writes for all; this one
+        # waits for it (JAX would give up on a process that exits 300 s before the rest).
+        parallel.barrier("mjstamp-solve-done")
+        return 0
     coverage = None
     if modes.supports_sweep(task) and not args.no_coverage:
         truth = modes.sweep(task, progress=progress)
@@ -354,6 +357,7 @@ def _cmd_solve(args) -> int:
         print(json.dumps(brief))
     else:
         _print_table(summary)
+    parallel.barrier("mjstamp-solve-done")
     return 0
 
 
@@ -363,14 +367,19 @@ def _methods() -> tuple[str, ...]:
     return ALL
 
 
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid cap {text!r}: expected seconds > 0") from None
-    if not value > 0 or value != value or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"cap {text} must be a finite number of seconds > 0")
-    return value
+def _seconds(what: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: expected seconds > 0"
+                                             ) from None
+        if not 0 < value < float("inf"):
+            raise argparse.ArgumentTypeError(f"{what} {text} must be a finite number of "
+                                             "seconds > 0")
+        return value
+
+    return parse
 
 
 def _cmd_compare(args) -> int:
@@ -555,7 +564,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="processes in the run (with --coordinator)")
     solve.add_argument("--process-id", type=_nonnegative_int, metavar="I",
                        help="this process's index, 0..N-1 (with --coordinator)")
-    solve.add_argument("--coordinator-timeout", type=float, default=60.0, metavar="S",
+    solve.add_argument("--coordinator-timeout", type=_seconds("coordinator timeout"),
+                       default=60.0, metavar="S",
                        help="seconds to wait for the coordinator (default 60)")
     solve.add_argument("--no-coverage", action="store_true",
                        help="skip the ground-truth sweep behind the coverage figure")
@@ -590,7 +600,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"comma-separated, of {', '.join(_methods())} (default: all)")
     compare.add_argument("--seeds", type=_count(1, "seed count"), default=3, metavar="S",
                          help="seeds 0..S-1 (default 3)")
-    compare.add_argument("--cap", type=_seconds, default=600.0, metavar="SECONDS",
+    compare.add_argument("--cap", type=_seconds("cap"), default=600.0, metavar="SECONDS",
                          help="each baseline's wall-time cap per seed (default 600)")
     compare.add_argument("--set", action="append", metavar="KEY=VALUE",
                          help="override a task or solve setting (repeatable), as for solve")

@@ -37,7 +37,7 @@ from jax.sharding import PartitionSpec as P
 
 from mjstamp.errors import MjstampError
 
-__all__ = ["AXIS", "check_devices", "fetch", "is_lead", "join_processes", "local_device",
+__all__ = ["AXIS", "barrier", "check_devices", "fetch", "is_lead", "join_processes", "local_device",
            "particle_mesh",
            "replicate_outputs", "request_host_devices", "shard_particles"]
 
@@ -115,7 +115,7 @@ def join_processes(coordinator: str, num_processes: int, process_id: int, *,
     else:
         _wait_reachable(host, port, timeout_s)
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(f"{host}:{port}", num_processes=num_processes,
+    jax.distributed.initialize(str(coordinator), num_processes=num_processes,
                                process_id=process_id,
                                initialization_timeout=max(1, int(timeout_s)))
 
@@ -167,13 +167,27 @@ def local_device():
     return jax.local_devices()[0]
 
 
+def barrier(name: str) -> None:
+    """Waits until every process of a run over several reaches `name` (alone: returns)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils  # noqa: PLC0415
+
+        multihost_utils.sync_global_devices(name)
+
+
 def is_lead() -> bool:
     """Whether this process prints and writes results: always, unless it is not process 0."""
     return jax.process_index() == 0
 
 
 def fetch(tree):
-    """`jax.device_get` that also reads arrays spread over several processes' devices."""
+    """`jax.device_get` that also reads arrays spread over several processes' devices.
+
+    N.B. an array sharded over processes is gathered by a collective: every
+    process must call `fetch` on it at the same point, or they deadlock. The
+    STAMP loop's arrays are replicated (`replicate_outputs`), so they never
+    need one.
+    """
     def one(x):
         if isinstance(x, jax.Array) and not x.is_fully_addressable and not x.is_fully_replicated:
             from jax.experimental import multihost_utils  # noqa: PLC0415

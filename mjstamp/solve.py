@@ -528,6 +528,9 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     devices = cfg.devices or jax.device_count()
     parallel.check_devices(devices)
+    if jax.process_count() > 1 and devices != jax.device_count():
+        raise MjstampError(f"devices={devices}: a solve over {jax.process_count()} processes "
+                           f"shards over all their {jax.device_count()} devices (devices=None)")
     say, clock = _say(progress), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
                                         checkpoint_every_s, resume_hint, say, devices)

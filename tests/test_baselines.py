@@ -36,11 +36,56 @@ def test_each_baseline_finds_a_plan_that_verifies(tiny, method):
     assert r.summary()["distinct_verified_task_plans"] == 1
 
 
-def test_blocking_finds_each_task_plan_once(tiny):
+def test_blocking_finds_both_task_plans_and_blocks_what_it_found(tiny):
+    from mjstamp.baselines.methods import _Blocks
+
     r = baselines.run("blocking", tiny, target=2, cap_s=300, seed=1, config=SMALL, starts=8)
     assert r.reached
     assert sorted(r.task_plans) == ["0-goal", "1-goal"]
-    assert len(set(r.task_plans)) == len(r.task_plans)
+    # The next run's penalty holds exactly the task plans found, each once.
+    problem = tiny.build()
+    spec = _Blocks(problem, np.float64).spec(r.found)
+    assert spec["blocked_on"].sum() == 2
+    blocked = sorted("".join(str(int(b)) for b in row)
+                     for row, on in zip(spec["blocked"], spec["blocked_on"], strict=True) if on)
+    assert blocked == sorted(f["code"] for f in r.found) == ["0", "1"]
+
+
+# The tiny table with two motors: a discrete choice of which way to drive the puck
+# ("left" or "right") for the first 5 steps, then a velocity box on top.
+MOTORS = '<actuator><motor joint="px" gear="1"/><motor joint="py" gear="1"/></actuator>'
+
+
+def _discrete_task(tiny_mjcf):
+    from mjstamp.scenes import Scene
+    from mjstamp.tasks import Task, costs
+
+    xml = tiny_mjcf().replace("</mujoco>", MOTORS + "\n</mujoco>")
+    task = Task("tiny-drive", Scene(xml, name="tiny-drive"), horizon=30)
+    task.box("v", low=[-1, -1], high=[1, 1], initial_qvel=("px", "py"))
+    task.discrete("drive", ("left", "right"), phases=1)
+    push = jnp.asarray([[-2.0, 0.0], [2.0, 0.0]])
+
+    def controls(params):
+        force = jnp.einsum("npo,oj->nj", params["drive"], push)  # (n, 2)
+        on = (jnp.arange(30) < 5).astype(force.dtype)
+        return on[None, :, None] * force[:, None, :]
+
+    task.controls(controls)
+    task.cost("goal", costs.reach("puck", ["goal"]), weight=50.0)
+    task.success(costs.reaches("puck", {"goal": "goal"}, radius=0.15))
+    return task
+
+
+@pytest.mark.parametrize("method", ["enumerate", "blocking", "cem"])
+def test_baselines_handle_discrete_actions(tiny_xml, method):
+    task = _discrete_task(tiny_xml)
+    r = baselines.run(method, task, target=1, cap_s=300, seed=0, config=SMALL,
+                      **SETTINGS[method])
+    assert r.reached, r.summary()
+    f = r.found[0]
+    assert f["task_plan"].split("-")[0] in ("left", "right")
+    assert f["action_ids"] in (((0,),), ((1,),))
 
 
 def test_blocking_penalty_is_the_soft_probability_of_the_blocked_plan(tiny):

@@ -117,6 +117,10 @@ def test_readme_two_process_example_runs(tmp_path):
      "process count 0 must be >= 1"),
     (["--coordinator", "127.0.0.1:4321", "--num-processes", "2", "--process-id", "x"],
      "invalid process id 'x'"),
+    (["--coordinator", "127.0.0.1:4321", "--num-processes", "2", "--process-id", "0",
+      "--coordinator-timeout", "inf"], "coordinator timeout inf must be a finite number"),
+    (["--coordinator", "127.0.0.1:4321", "--num-processes", "2", "--process-id", "0",
+      "--coordinator-timeout", "-1"], "coordinator timeout -1 must be a finite number"),
 ])
 def test_bad_process_flags_are_one_line(argv, needle, capsys):
     assert main(["solve", "billiards", *argv]) == 2

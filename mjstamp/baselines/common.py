@@ -82,7 +82,8 @@ class BaselineResult:
 class Tracker:
     """Distinct task plans verified in MuJoCo C, timed from the tracker's start."""
 
-    def __init__(self, problem: Problem, target: int | None, cap_s: float):
+    def __init__(self, problem: Problem, target: int | None, cap_s: float, *,
+                 start: float | None = None):
         if target is not None and (isinstance(target, bool) or not isinstance(target, int)
                                    or target < 1):
             raise MjstampError(f"target={target!r} must be an integer >= 1 (task plans) or None")
@@ -91,7 +92,9 @@ class Tracker:
         self.problem, self.target, self.cap_s = problem, target, float(cap_s)
         self.found: dict[str, dict] = {}
         self.rollouts = 0
-        self.start = time.perf_counter()
+        # N.B. `start`: when the method began (its calibration and compiles count,
+        # as STAMP's screen and calibration do in its wall time).
+        self.start = time.perf_counter() if start is None else start
         self.finished_at: float | None = None
 
     def elapsed(self) -> float:
@@ -136,6 +139,8 @@ class Tracker:
 
     def result(self, method: str, seed: int, runs: int, settings: dict) -> BaselineResult:
         """The `BaselineResult` of what was found."""
+        # N.B. a method stopped by its cap is reported at the cap: what it did after
+        # (the rest of a run, at most `check_every` iterations) is not counted.
         wall = self.finished_at if self.finished_at is not None else min(self.elapsed(),
                                                                           self.cap_s)
         return BaselineResult(
@@ -175,7 +180,7 @@ def chosen(problem: Problem, theta: np.ndarray) -> tuple[tuple[int, ...], ...]:
     """Per discrete variable, the option Γ(θ) takes in each phase (argmax of its logits)."""
     out = []
     for v in _discrete(problem):
-        logits = np.asarray(theta)[problem.slices[v.name]].reshape(v.phases, len(v.options))
+        logits = np.asarray(theta)[problem.slices()[v.name]].reshape(v.phases, len(v.options))
         out.append(tuple(int(o) for o in logits.argmax(axis=1)))
     return tuple(out)
 
@@ -248,7 +253,7 @@ def constrained_logdensity(problem: Problem, *, symbol_weight: float, block_weig
         options): Diverse LGP's penalty on the plans already found.
     """
     discrete = _discrete(problem)
-    blocks = [(problem.slices[v.name], v.phases, len(v.options)) for v in discrete]
+    blocks = [(problem.slices()[v.name], v.phases, len(v.options)) for v in discrete]
 
     def logp(theta, spec):
         n = theta.shape[0]

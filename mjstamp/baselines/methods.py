@@ -32,6 +32,7 @@ from a uniform mean and half-width spreads.
 from __future__ import annotations
 
 import math
+import time
 
 import jax
 import jax.numpy as jnp
@@ -57,14 +58,23 @@ __all__ = ["run_blocking", "run_cem", "run_enumerate"]
 MAX_BLOCKED = 64  # task plans the blocking penalty holds (one compiled shape)
 
 
+def _integer(name: str, value, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise MjstampError(f"{name}={value!r} must be an integer >= {low}")
+
+
+def _weight(name: str, value) -> None:
+    if (isinstance(value, bool) or not isinstance(value, (int, float))
+            or not 0 <= value < math.inf):
+        raise MjstampError(f"{name}={value!r} must be a finite number >= 0")
+
+
 def _setup(task, config, seed: int, starts: int) -> tuple[Problem, SolveConfig]:
     """The problem on its calibrated gradient model, and the solve settings it uses."""
     from mjstamp import solve as solve_mod  # noqa: PLC0415 - solve imports much
 
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise MjstampError(f"seed={seed!r} must be an integer >= 0")
-    if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
-        raise MjstampError(f"starts={starts!r} must be an integer >= 1")
+    _integer("seed", seed, 0)
+    _integer("starts", starts, 1)
     problem = solve_mod.as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     if cfg.calibrate:
@@ -87,7 +97,8 @@ class _SGD:
                                    block_weight=block_weight), devices)
         widths = (problem.high - problem.low).astype(np.float64)
         self.optimizer = solve_mod._optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths)
-        mode = "fwd" if problem.dim <= 2 else "rev"
+        # N.B. as `build_sgd_step` resolves the solve's `jacobian` setting.
+        mode = cfg.jacobian if cfg.jacobian != "auto" else ("fwd" if problem.dim <= 2 else "rev")
         optimizer = self.optimizer
 
         def step(theta, opt_state, spec):
@@ -128,10 +139,10 @@ def _devices(cfg: SolveConfig) -> int:
     return devices
 
 
-def _iters(cfg: SolveConfig, iters: int | None) -> int:
+def _iters(cfg: SolveConfig, iters: int | None, check_every: int) -> int:
     iters = cfg.sgd_max_iters if iters is None else iters
-    if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
-        raise MjstampError(f"iters={iters!r} must be an integer >= 1")
+    _integer("iters", iters, 1)
+    _integer("check_every", check_every, 1)
     return iters
 
 
@@ -144,34 +155,50 @@ def run_enumerate(task, *, target: int | None = None, cap_s: float = 600.0, seed
     each round takes them in a random order (seeded), skipping those already
     verified, and optimises one: SGD from `starts` random starts on the cost
     plus a loss requiring its symbols, its options fixed. Verified plans of
-    any task plan count (a run aimed at one may verify another).
+    any task plan count (a run aimed at one may verify another). Once every
+    candidate has been verified, rounds go over all of them again, each run
+    ending at its first new task plan (one whose success label differs).
 
     Raises:
       MjstampError: a task without symbols or discrete actions (nothing to
         enumerate), or a bad setting.
     """
+    started = time.perf_counter()
+    _weight("symbol_weight", symbol_weight)
     problem, cfg = _setup(task, config, seed, starts)
     cands = candidates(problem)
-    iters = _iters(cfg, iters)
+    iters = _iters(cfg, iters, check_every)
     sgd = _SGD(problem, cfg, starts, symbol_weight=symbol_weight, block_weight=0.0)
-    tracker = Tracker(problem, target, cap_s)
+    tracker = Tracker(problem, target, cap_s, start=started)
     rng = np.random.default_rng(seed)
     key = jax.random.key(seed)
     dtype = problem.scene.dtype
     runs = 0
     while not tracker.done:
-        for i in rng.permutation(len(cands)):
-            c = cands[i]
+        # N.B. once every candidate is verified, passes go on over all of them (new
+        # random starts): task plans that differ only in their success label remain.
+        found = {f["symbolic"] for f in tracker.found.values()}
+        left = [c for c in cands if c.name(problem) not in found] or cands
+        for i in rng.permutation(len(left)):
+            c = left[i]
             symbolic = c.name(problem)
-            if any(f["symbolic"] == symbolic for f in tracker.found.values()):
+            if left is not cands and any(f["symbolic"] == symbolic
+                                         for f in tracker.found.values()):
                 continue
             spec = empty_spec(problem, MAX_BLOCKED, dtype)
             spec.update(want=np.asarray(c.bits, dtype), want_on=np.ones((), dtype),
                         fix=onehots(problem, c.actions, dtype),
                         fix_on=np.ones((), dtype) if c.actions else np.zeros((), dtype))
             key, sub = jax.random.split(key)
-            sgd.run(sub, spec, iters, check_every, tracker, stop=lambda s=symbolic: any(
-                f["symbolic"] == s for f in tracker.found.values()))
+            before = len(tracker.found)
+
+            def stop(s=symbolic, aimed=left is not cands, before=before):
+                """Aimed at a candidate: it is verified; a later round: any new task plan."""
+                if aimed:
+                    return any(f["symbolic"] == s for f in tracker.found.values())
+                return len(tracker.found) > before
+
+            sgd.run(sub, spec, iters, check_every, tracker, stop=stop)
             runs += 1
             if tracker.done:
                 break
@@ -188,19 +215,23 @@ def run_blocking(task, *, target: int | None = None, cap_s: float = 600.0, seed:
     Each run is SGD from `starts` random starts on the cost plus a penalty on
     the soft probability of every task plan found so far (its symbols and
     options); each distinct task plan it verifies is kept and blocked in the
-    runs after it, so no task plan is returned twice.
+    runs after it. N.B. the penalty acts on symbols and options, as Diverse
+    LGP blocks symbolic plans: task plans that differ only in their success
+    label (billiards' pocket) are blocked together once one is found.
     """
+    started = time.perf_counter()
+    _weight("block_weight", block_weight)
     problem, cfg = _setup(task, config, seed, starts)
-    iters = _iters(cfg, iters)
+    iters = _iters(cfg, iters, check_every)
     sgd = _SGD(problem, cfg, starts, symbol_weight=0.0, block_weight=block_weight)
-    tracker = Tracker(problem, target, cap_s)
+    tracker = Tracker(problem, target, cap_s, start=started)
     key = jax.random.key(seed)
     dtype = problem.scene.dtype
     blocks = _Blocks(problem, dtype)
     runs = 0
     while not tracker.done:
         spec = empty_spec(problem, MAX_BLOCKED, dtype)
-        spec.update(blocks.spec(tracker))
+        spec.update(blocks.spec(list(tracker.found.values())))
         key, sub = jax.random.split(key)
         sgd.run(sub, spec, iters, check_every, tracker)
         runs += 1
@@ -215,8 +246,9 @@ class _Blocks:
     def __init__(self, problem: Problem, dtype):
         self.problem, self.dtype = problem, dtype
 
-    def spec(self, tracker: Tracker) -> dict[str, np.ndarray]:
-        found = list(tracker.found.values())[-MAX_BLOCKED:]
+    def spec(self, found: list[dict]) -> dict[str, np.ndarray]:
+        """The arrays blocking the task plans `found` (entries of `Tracker.found`)."""
+        found = found[-MAX_BLOCKED:]
         spec = empty_spec(self.problem, MAX_BLOCKED, self.dtype)
         for j, f in enumerate(found):
             spec["blocked"][j] = [int(b) for b in f["code"]]
@@ -233,17 +265,19 @@ def run_cem(task, *, target: int | None = None, cap_s: float = 600.0, seed: int 
 
     What a user of MJX sampling planners (hydrax's CEM) would try: a diagonal
     Gaussian over θ, refit to the best `elite_frac` of each population by the
-    task's own cost on its MuJoCo C replay; every successful sample's task
-    plan is kept. A restart draws a new uniform mean when the elites' spread
-    falls below `min_spread` of every box width, or after `generations`.
+    task's own cost (of its MJX rollouts, or of its C replays); every sample
+    is replayed in MuJoCo C and each successful one's task plan is kept. A
+    restart draws a new uniform mean when the elites' spread falls below
+    `min_spread` of every box width, or after `generations`.
     `rollouts`: "mjx" (the planner's forward rollouts score, C verifies) or
     "c" (C replays score and verify).
     """
-    for name, value, low in (("population", population, 2), ("generations", generations, 1)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise MjstampError(f"{name}={value!r} must be an integer >= {low}")
-    if not 0 < elite_frac < 1:
-        raise MjstampError(f"elite_frac={elite_frac!r} must be in (0, 1)")
+    started = time.perf_counter()
+    _integer("population", population, 2)
+    _integer("generations", generations, 1)
+    for name, value in (("elite_frac", elite_frac), ("min_spread", min_spread)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+            raise MjstampError(f"{name}={value!r} must be a number in (0, 1)")
     if rollouts not in ("mjx", "c"):
         raise MjstampError(f"rollouts={rollouts!r} is not valid; valid: mjx, c")
     problem, cfg = _setup(task, config, seed, population)
@@ -251,7 +285,7 @@ def run_cem(task, *, target: int | None = None, cap_s: float = 600.0, seed: int 
     low, high = problem.low.astype(np.float64), problem.high.astype(np.float64)
     width = high - low
     elites = max(2, math.ceil(elite_frac * population))
-    tracker = Tracker(problem, target, cap_s)
+    tracker = Tracker(problem, target, cap_s, start=started)
     rng = np.random.default_rng(seed)
     runs = 0
     while not tracker.done:
