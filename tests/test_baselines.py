@@ -145,6 +145,24 @@ def test_bad_baseline_input_is_one_line(tiny, call, needle):
     assert needle in str(e.value) and "\n" not in str(e.value)
 
 
+def test_cli_names_every_method():
+    from mjstamp.baselines.compare import ALL
+    from mjstamp.cli import METHODS
+
+    assert METHODS == ALL
+
+
+def test_every_package_is_installed():
+    """A package missing from pyproject's list is absent from a non-editable install."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "packages"])
+    found = {str(p.parent.relative_to(ROOT)).replace("/", ".")
+             for p in (ROOT / "mjstamp").rglob("__init__.py")}
+    assert found <= listed, sorted(found - listed)
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["compare", "billiards", "--methods", "stamp,astar"], "unknown method 'astar'"),
     (["compare", "billiards", "--seeds", "0"], "seed count 0 must be >= 1"),
