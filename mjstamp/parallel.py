@@ -37,9 +37,8 @@ from jax.sharding import PartitionSpec as P
 
 from mjstamp.errors import MjstampError
 
-__all__ = ["AXIS", "barrier", "check_devices", "fetch", "is_lead", "join_processes", "local_device",
-           "particle_mesh",
-           "replicate_outputs", "request_host_devices", "shard_particles"]
+__all__ = ["AXIS", "barrier", "check_devices", "is_lead", "join_processes", "local_device",
+           "particle_mesh", "replicate_outputs", "request_host_devices", "shard_particles"]
 
 AXIS = "particles"
 _FLAG = "--xla_force_host_platform_device_count"
@@ -178,24 +177,6 @@ def barrier(name: str) -> None:
 def is_lead() -> bool:
     """Whether this process prints and writes results: always, unless it is not process 0."""
     return jax.process_index() == 0
-
-
-def fetch(tree):
-    """`jax.device_get` that also reads arrays spread over several processes' devices.
-
-    N.B. an array sharded over processes is gathered by a collective: every
-    process must call `fetch` on it at the same point, or they deadlock. The
-    STAMP loop's arrays are replicated (`replicate_outputs`), so they never
-    need one.
-    """
-    def one(x):
-        if isinstance(x, jax.Array) and not x.is_fully_addressable and not x.is_fully_replicated:
-            from jax.experimental import multihost_utils  # noqa: PLC0415
-
-            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-        return x
-
-    return jax.device_get(jax.tree.map(one, tree))
 
 
 def check_devices(k: int) -> list:

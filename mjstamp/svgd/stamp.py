@@ -25,7 +25,6 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
-from mjstamp.parallel import fetch
 from mjstamp.svgd._checks import check_particles
 from mjstamp.svgd._jacobian import JacobianMode, check_mode
 from mjstamp.svgd.kernels import Kernel
@@ -700,6 +699,24 @@ class _Rescue:
         self.fresh = idx
         return state._replace(particles=particles.at[idx].set(fresh),
                               opt_state=jax.tree.map(reset, state.opt_state))
+
+
+def fetch(tree):
+    """`jax.device_get` that also reads arrays spread over several processes' devices.
+
+    N.B. such an array is gathered by a collective, which every process must
+    reach at the same point; the loop's arrays are replicated by the caller's
+    `jit` when its mesh spans processes (`mjstamp.parallel.replicate_outputs`),
+    so it never needs one.
+    """
+    def one(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable and not x.is_fully_replicated:
+            from jax.experimental import multihost_utils  # noqa: PLC0415
+
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return x
+
+    return jax.device_get(jax.tree.map(one, tree))
 
 
 _FROM_STEP = tuple(f for f in IterationRecord._fields if f in StepInfo._fields)
