@@ -53,6 +53,25 @@ def make_tiny_task(*, horizon=40, turn=0.0, goal_size=0.02, goal_pos="-0.3 0.3 0
     return task
 
 
+def assert_same_plans(one: dict, two: dict, *, atol: float = 1e-12) -> None:
+    """Two solves' summaries hold the same plans; costs and motion plans within `atol`."""
+    import numpy as np
+
+    assert one["verified"] == two["verified"] and one["task_plans"] == two["task_plans"]
+    assert [(p["particle"], p["task_plan"], p["verified"]) for p in one["plans"]] == [
+        (p["particle"], p["task_plan"], p["verified"]) for p in two["plans"]]
+    for p, q in zip(one["plans"], two["plans"], strict=True):
+        assert abs(p["cost"] - q["cost"]) <= atol
+        for name, value in p["motion_plan"].items():
+            np.testing.assert_allclose(value, q["motion_plan"][name], rtol=0, atol=atol)
+
+
+@pytest.fixture(scope="session")
+def same_plans():
+    """`assert_same_plans`, for tests."""
+    return assert_same_plans
+
+
 @pytest.fixture(scope="session")
 def tiny_xml():
     """`tiny_mjcf`, the tiny scene's MJCF (a factory)."""

@@ -5,7 +5,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 TESTS = Path(__file__).resolve().parent
@@ -31,7 +30,7 @@ print(json.dumps(out))
 
 
 @pytest.mark.slow
-def test_sharded_and_unsharded_solves_agree():
+def test_sharded_and_unsharded_solves_agree(same_plans):
     proc = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True,
                           timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -40,13 +39,7 @@ def test_sharded_and_unsharded_solves_agree():
     one, two = out["1"], out["2"]
     # The same plans; costs and motion plans to rounding (a 2-device compile vectorises
     # its smaller batches differently: 1 ulp here, 2e-16).
-    assert one["verified"] == two["verified"] and one["task_plans"] == two["task_plans"]
-    assert [(p["particle"], p["task_plan"], p["verified"]) for p in one["plans"]] == [
-        (p["particle"], p["task_plan"], p["verified"]) for p in two["plans"]]
-    for p, q in zip(one["plans"], two["plans"], strict=True):
-        assert abs(p["cost"] - q["cost"]) <= 1e-12
-        for name, value in p["motion_plan"].items():
-            np.testing.assert_allclose(value, q["motion_plan"][name], rtol=0, atol=1e-12)
+    same_plans(one, two, atol=1e-12)
 
 
 def test_more_devices_than_present_is_one_line():
