@@ -146,8 +146,8 @@ def load(out: str | Path, *, expect: Mapping[str, Any], settings: Mapping | None
                 key_data=data["key_data"], rows=rows,
                 svgd_particles=data["svgd_particles"] if "svgd_particles" in data else None,
                 svgd_converged=meta["svgd_converged"],
-                counters={k: data[f"counter_{k}"]
-                          for k in ("stalled", "rescued", "failing", "nonfinite_redrawn")},
+                counters={k[len("counter_"):]: data[k] for k in data.files
+                          if k.startswith("counter_")},
             )
     except (KeyError, ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile) as e:
         raise MjstampError(f"{str(path)!r} is not a readable checkpoint ({e}); delete it to "

@@ -271,7 +271,8 @@ def diagnostics_figure(result) -> Figure:
     solve's box-relative steps are, this line is off by that scale); and the
     share of particles whose score is near zero (`StampDiagnostics.near_zero_share`),
     with the median share of a particle's own score in its driving term
-    (`StampDiagnostics.self_weight_median`).
+    (`StampDiagnostics.self_weight_median`) and the share of particles whose
+    last step was taken back (`StampDiagnostics.backtracked`).
 
     Args:
       result: anything with `diagnostics` (a `StampDiagnostics`): a
@@ -319,7 +320,8 @@ def diagnostics_figure(result) -> Figure:
     _terms_panel(terms, it, d)
     _bandwidth_panel(bands, it, d)
     _steps_panel(steps, it, d, task)
-    _stalled_panel(stalled, it, d)
+    particles = getattr(result, "theta", getattr(result, "particles", None))
+    _stalled_panel(stalled, it, d, None if particles is None else int(np.shape(particles)[0]))
     return fig
 
 
@@ -373,12 +375,16 @@ def _steps_panel(ax, it, d, task) -> None:
     ax.legend(loc="lower left", fontsize=7, ncols=2)
 
 
-def _stalled_panel(ax, it, d) -> None:
+def _stalled_panel(ax, it, d, n: int | None) -> None:
     share = _line(ax, it, d.near_zero_share, color="C2",
                   label="particles with ‖∇log ρ(θ_i)‖ ≤ τ "
                         "(τ = 1e-3 × median nonzero score at phase start)")
     own = _line(ax, it, d.self_weight_median, color="C4", ls="--",
                 label="a_i k_ii / Σ_j a_j k_ji, median (1/n: a particle follows the crowd)")
+    back = getattr(d, "backtracked", None)
+    if n and back is not None and np.any(np.asarray(back) > 0):
+        _line(ax, it, np.asarray(back, float) / n, color="C1", ls=":",
+              label="particles whose last step was taken back (backtrack)")
     ax.set_ylim(-0.02, 1.02)
     if np.any(np.isfinite(share)) or np.any(np.isfinite(own)):
         ax.legend(loc="upper left", fontsize=8)

@@ -330,6 +330,23 @@ def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: 
     return out
 
 
+def _particles_line(summary: dict) -> str:
+    """A line 'particles: ...' (verified share, the mean cost per phase, re-draws), or ''."""
+    loss = summary.get("loss")
+    if not loss or loss["mean"]["initial"] is None or "verified_particle_share" not in summary:
+        return ""
+    m = loss["mean"]
+    line = (f"\nparticles: {summary['verified_particle_share']:.0%} end as verified plans; mean "
+            f"cost {m['initial']:.3g} at the start, {m['svgd']:.3g} after SVGD, "
+            f"{m['final']:.3g} at the end")
+    if loss.get("svgd_share") is not None:
+        line += f" (SVGD: {loss['svgd_share']:.0%} of the decrease)"
+    rescue = summary.get("rescue")
+    if rescue:
+        line += f"; {rescue['redraws']} stalled particles re-drawn"
+    return line
+
+
 def format_table(summary: dict, *, markdown: bool = False) -> str:
     """The table of task plans `mjstamp solve` prints, from a solve's summary.
 
@@ -368,6 +385,7 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
                   ", over it at the final particles: their plans are verified in C") + ")"
                if tol is not None else "")
         )
+    footer += _particles_line(summary)
     if markdown:
         lines = ["| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 1)]
         lines += ["| `" + b[0] + "` | " + " | ".join(b[1:]) + " |" for b in body]

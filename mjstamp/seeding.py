@@ -78,12 +78,36 @@ def seed_particles(
     Returns:
       (particles (n, d) float64, `Screen`).
     """
+    seeded = screen_particles(problem, key, n, screen=screen, chunk=chunk)
+    return seeded.particles, seeded.screen
+
+
+@dataclasses.dataclass(frozen=True)
+class Seeded:
+    """A screen's outcome: the chosen particles, its report, and its successes by task plan.
+
+    Attributes:
+      particles: (n, d) initial particles.
+      screen: the `Screen` report.
+      successes: {task plan: (m, d) candidates that reached it in MuJoCo C},
+        best cost first; the stall rescue re-draws near them (`Redraw`).
+    """
+
+    particles: np.ndarray
+    screen: Screen
+    successes: dict[str, np.ndarray]
+
+
+def screen_particles(
+    problem, key: jax.Array, n: int, *, screen: int = 16, chunk: int = 256
+) -> Seeded:
+    """`seed_particles`, also handing back the screen's successes by task plan."""
     started = time.perf_counter()
     problem = problem if isinstance(problem, Problem) else problem.build()
     total = n * max(1, int(screen))
     candidates = np.asarray(problem.init(key, total), np.float64)
     if screen <= 1:
-        return candidates, Screen(total, 0, {}, 0, time.perf_counter() - started)
+        return Seeded(candidates, Screen(total, 0, {}, 0, time.perf_counter() - started), {})
     groups: dict[str, list[tuple[float, int]]] = defaultdict(list)
     successes: dict[str, int] = defaultdict(int)
     for start in range(0, total, chunk):
@@ -110,4 +134,48 @@ def seed_particles(
         task_plans=dict(sorted(successes.items(), key=lambda kv: -kv[1])),
         groups=len(groups), seconds=time.perf_counter() - started,
     )
-    return candidates[np.asarray(chosen)], report
+    found = {k[len("ok:"):]: candidates[[i for _, i in groups[k]]]
+             for k in order if k.startswith("ok:")}
+    return Seeded(candidates[np.asarray(chosen)], report, found)
+
+
+class Redraw:
+    """Fresh particles for the stall rescue: from the prior, or near a screen's successes.
+
+    Each fresh particle is, with probability `near`, a success of the screen
+    plus Gaussian noise of `jitter` times each coordinate's box width (clipped
+    to the box), its task plan chosen uniformly among the screen's task plans,
+    so a rare task plan is as likely as a common one and none is crowded out;
+    otherwise a draw from the prior. With no successes it always draws from the
+    prior. A pure function of the key (a resumed solve re-draws the same).
+
+    Args:
+      problem: the `Problem` (its prior `init` and box `low`/`high`).
+      successes: {task plan: (m, d) candidates} (`Seeded.successes`).
+      near: share of the re-draws taken near a success.
+      jitter: noise scale in box widths.
+    """
+
+    def __init__(self, problem: Problem, successes: dict[str, np.ndarray], *,
+                 near: float = 0.5, jitter: float = 0.01):
+        self.problem = problem
+        self.pools = [np.asarray(v, np.float64) for _, v in sorted(successes.items()) if len(v)]
+        self.near = float(near) if self.pools else 0.0
+        self.jitter = float(jitter)
+        self.low = np.asarray(problem.low, np.float64)
+        self.high = np.asarray(problem.high, np.float64)
+
+    def __call__(self, key: jax.Array, k: int) -> np.ndarray:
+        """(k, d) fresh particles."""
+        prior_key, key = jax.random.split(key)
+        fresh = np.array(self.problem.init(prior_key, k), np.float64)
+        if not self.near:
+            return fresh
+        rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel().tolist())
+        take = rng.random(k) < self.near
+        for i in np.flatnonzero(take):
+            pool = self.pools[rng.integers(len(self.pools))]
+            centre = pool[rng.integers(len(pool))]
+            noise = rng.normal(size=centre.shape) * self.jitter * (self.high - self.low)
+            fresh[i] = np.clip(centre + noise, self.low, self.high)
+        return fresh

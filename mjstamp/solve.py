@@ -110,6 +110,9 @@ class SolveResult:
       rescue: with `SolveConfig.rescue_window` on, the re-draws and the
         task-plan counts (C replays) of the initial and final particles; None
         when off.
+      loss: mean and median cost (MJX) of the particles at the start, at the
+        end of SVGD and at the end, and the SVGD phase's share of the decrease
+        (`_loss_report`).
       devices: how many devices the particles were sharded over.
       compiles: the XLA compiles the solve did (`_Compiles.report`: count and
         seconds of those >= 0.5 s, the largest by function).
@@ -134,6 +137,7 @@ class SolveResult:
     screen: dict | None
     source: np.ndarray
     rescue: dict | None = None
+    loss: dict | None = None
     compiles: dict | None = None
     devices: int = 1
 
@@ -176,6 +180,7 @@ class SolveResult:
             "fidelity": self.fidelity,
             "screen": self.screen,
             "rescue": self.rescue,
+            "loss": self.loss,
             "kept_from_earlier": {
                 name: int(((self.source == name) & ok).sum()) for name in ("svgd", "initial")
             },
@@ -358,7 +363,7 @@ def _stamp_config(cfg: SolveConfig, problem: Problem, seed: int) -> svgd.StampCo
         svgd_max_iters=cfg.svgd_max_iters, sgd_max_iters=cfg.sgd_max_iters,
         min_iters=cfg.min_iters, window=cfg.window, rtol=cfg.rtol, motion_tol=motion,
         seed=seed, jacobian=cfg.jacobian, rescue_window=cfg.rescue_window,
-        nonfinite_redraw=cfg.nonfinite_redraw,
+        nonfinite_redraw=cfg.nonfinite_redraw, backtrack=cfg.backtrack,
     )
 
 
@@ -389,13 +394,16 @@ class _Evaluator:
 
 
 def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
-    """(θ0 (n, d), screen report or None): seeded from a C screen, or drawn from the prior."""
+    """(θ0 (n, d), screen report or None, the screen's successes by task plan).
+
+    Seeded from a C screen, or drawn from the prior (no screen, no successes).
+    """
     key = jax.random.key(seed)
     if cfg.screen <= 1:
-        return problem.init(key, cfg.particles), None
+        return problem.init(key, cfg.particles), None, {}
     say(f"screening {cfg.screen * cfg.particles} candidates in MuJoCo C")
-    theta0, screen = seeding.seed_particles(problem, key, cfg.particles, screen=cfg.screen)
-    return jnp.asarray(theta0, problem.scene.dtype), screen
+    seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen)
+    return jnp.asarray(seeded.particles, problem.scene.dtype), seeded.screen, seeded.successes
 
 
 def _check_mjx(problem: Problem, evaluate: _Evaluator, theta0: np.ndarray, calibration,
@@ -418,7 +426,7 @@ def _check_mjx(problem: Problem, evaluate: _Evaluator, theta0: np.ndarray, calib
 
 
 def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, *,
-               devices: int = 1, checkpointer=None, resume=None):
+               devices: int = 1, checkpointer=None, resume=None, successes=None):
     widths = _box_widths(problem)
     discrete = {}
     if problem.has_actions:
@@ -441,7 +449,8 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
         progress=progress,
         jit=lambda step, state, key, phase: jit(parallel.replicate_outputs(step, devices),
                                                 f"stamp-{phase} {cfg} on {devices}", state, key),
-        redraw=problem.init,
+        redraw=seeding.Redraw(problem, successes or {}, near=cfg.rescue_near,
+                              jitter=cfg.svgd_step),
         checkpoint=checkpointer, resume=resume,
         **discrete,
     )
@@ -534,7 +543,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     say, clock = _say(progress), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
                                         checkpoint_every_s, resume_hint, say, devices)
-    theta0, screen = _initial_particles(problem, cfg, seed, say)
+    theta0, screen, successes = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
     clock["screen"] = time.perf_counter()
     calibration, report = None, {"calibrated": False}
@@ -548,16 +557,19 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     cpu = time.process_time()
     with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
         stamp = _run_stamp(problem, cfg, theta0, seed, progress, devices=devices,
-                           checkpointer=checkpointer, resume=snap)
+                           checkpointer=checkpointer, resume=snap, successes=successes)
     clock["stamp"] = time.perf_counter()
     clock["stamp_cpu"] = time.process_time() - cpu
     say("decoding and verifying in MuJoCo C")
     theta = np.asarray(stamp.particles, np.float64)
     outcome = evaluate(theta)
     source = np.full(len(theta), "final", dtype=object)
+    snapshots = {"svgd": np.asarray(stamp.svgd_particles, np.float64), "initial": theta0_np}
+    visited = {name: (snap, evaluate(snap)) for name, snap in snapshots.items()}
+    loss = _loss_report({"initial": visited["initial"][1].cost,
+                         "svgd": visited["svgd"][1].cost, "final": outcome.cost})
     if cfg.keep_visited:
-        snapshots = {"svgd": np.asarray(stamp.svgd_particles, np.float64), "initial": theta0_np}
-        theta, source = _keep_visited(theta, outcome, snapshots, evaluate)
+        theta, source = _keep_visited(theta, outcome, visited)
         if (source != "final").any():
             outcome = evaluate(theta)
     returned = outcome.predicted.ok & np.isfinite(outcome.cost)
@@ -577,7 +589,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
                              repaired),
         timings=_timings(clock), fidelity=report,
         screen=None if screen is None else screen.as_dict(), source=source,
-        rescue=_rescue_report(problem, cfg, stamp, theta0_np, outcome), devices=devices,
+        rescue=_rescue_report(problem, cfg, stamp, visited["initial"][1], outcome),
+        devices=devices, loss=loss,
     )
 
 
@@ -647,11 +660,12 @@ def _plan_counts(decoded: plans_mod.Decoded) -> dict[str, int]:
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
-def _rescue_report(problem, cfg: SolveConfig, stamp, theta0: np.ndarray, outcome) -> dict | None:
+def _rescue_report(problem, cfg: SolveConfig, stamp, initial: Outcome,
+                   outcome: Outcome) -> dict | None:
     """Re-draws of the stall rescue and the task plans (C) before and after; None when off."""
     if not cfg.rescue_window:
         return None
-    initial = problem.decode(plans_mod.simulate_c(problem, theta0), theta0)
+    initial = initial.verified
     return {"window": cfg.rescue_window, "redraws": int(stamp.rescued.sum()),
             "particles_redrawn": int((stamp.rescued > 0).sum()),
             "task_plan_counts": {"initial": _plan_counts(initial),
@@ -676,7 +690,24 @@ def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int) -> di
     }
 
 
-def _keep_visited(theta, final: Outcome, snapshots, evaluate):
+def _loss_report(costs: dict[str, np.ndarray]) -> dict:
+    """Mean and median cost (MJX, actions at Γ) at the start, the end of SVGD and the end.
+
+    Over the particles whose cost is finite at all three; `svgd_share` is the
+    SVGD phase's share of the decrease of the mean, (initial - svgd) /
+    (initial - final), None when the mean did not decrease.
+    """
+    finite = np.all([np.isfinite(c) for c in costs.values()], axis=0)
+    out: dict = {"particles": int(finite.sum())}
+    for stat, fn in (("mean", np.mean), ("median", np.median)):
+        out[stat] = {k: float(fn(c[finite])) if finite.any() else None for k, c in costs.items()}
+    mean = out["mean"]
+    drop = None if mean["initial"] is None else mean["initial"] - mean["final"]
+    out["svgd_share"] = (mean["initial"] - mean["svgd"]) / drop if drop and drop > 0 else None
+    return out
+
+
+def _keep_visited(theta, final: Outcome, visited):
     """Per particle, the best plan it visited: its final state or an earlier snapshot.
 
     A particle can pass through a plan that succeeds and leave it (SVGD's
@@ -689,8 +720,7 @@ def _keep_visited(theta, final: Outcome, snapshots, evaluate):
     Args:
       theta: (n, d) final particles.
       final: their `Outcome`.
-      snapshots: {name: (n, d)} earlier particles, latest first.
-      evaluate: θ -> `Outcome`.
+      visited: {name: ((n, d) earlier particles, their `Outcome`)}, latest first.
 
     Returns:
       (theta (n, d) with chosen snapshots, source (n,) names: "final" or a key
@@ -701,10 +731,8 @@ def _keep_visited(theta, final: Outcome, snapshots, evaluate):
     theta = theta.copy()
     source = np.full(len(theta), "final", dtype=object)
     counts = Counter(plan[ok])
-    seen = {}
-    for name, snap in snapshots.items():
-        o = evaluate(snap)
-        seen[name] = (snap, o.good, np.asarray(o.verified.plan, dtype=object))
+    seen = {name: (snap, o.good, np.asarray(o.verified.plan, dtype=object))
+            for name, (snap, o) in visited.items()}
     for i in np.flatnonzero(~ok):
         for name, (snap, good, plan_s) in seen.items():
             if good[i]:

@@ -101,7 +101,8 @@ def test_solve_config_names_unknown_and_bad_settings():
     assert "valid:" in msg and "particles" in msg and "\n" not in msg
     assert SolveConfig.from_dict({"horizon": 5}, ignore={"horizon": 5}) == SolveConfig()
     for bad in ({"particles": 1}, {"svgd_step": 0}, {"repair": "yes"}, {"jacobian": "x"},
-                {"svgd_max_iters": 2.5}, {"fidelity_tolerance": -1.0}):
+                {"svgd_max_iters": 2.5}, {"fidelity_tolerance": -1.0}, {"rescue_near": 1.5},
+                {"rescue_near": float("nan")}, {"rescue_near": True}):
         with pytest.raises(MjstampError, match=next(iter(bad))):
             SolveConfig.from_dict(bad)
     # Caps a user would accept, not 1000 + 1000.

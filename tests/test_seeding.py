@@ -24,3 +24,54 @@ def test_seeding_is_reproducible_and_spread_over_task_plans(tiny_task):
     prior, none = seeding.seed_particles(task, key, 8, screen=1)
     np.testing.assert_array_equal(prior, np.asarray(task.build().init(key, 8)))
     assert none.successes == 0
+
+
+class _Box:
+    """A stand-in problem: a 2-D box [0, 10] x [0, 1] with a uniform prior."""
+
+    low = np.array([0.0, 0.0])
+    high = np.array([10.0, 1.0])
+
+    def init(self, key, n):
+        return self.low + jax.random.uniform(key, (n, 2)) * (self.high - self.low)
+
+
+def test_redraw_near_successes_spreads_over_task_plans_and_falls_back_to_the_prior():
+    box = _Box()
+    key = jax.random.key(0)
+    # No successes: the prior's own draw, whatever `near` says.
+    prior = seeding.Redraw(box, {}, near=1.0)
+    np.testing.assert_array_equal(prior(key, 5),
+                                  np.asarray(box.init(jax.random.split(key)[0], 5)))
+    # A common task plan (100 candidates at x = 2) and a rare one (1 at x = 8):
+    # each fresh particle near a success picks its task plan uniformly, so the
+    # rare one gets about half of them, not 1%.
+    successes = {"common": np.tile([2.0, 0.5], (100, 1)), "rare": np.array([[8.0, 0.5]])}
+    near = seeding.Redraw(box, successes, near=1.0, jitter=0.01)
+    fresh = near(key, 400)
+    np.testing.assert_array_equal(fresh, near(key, 400))  # a function of the key
+    assert not np.array_equal(fresh, near(jax.random.key(1), 400))
+    rare = np.abs(fresh[:, 0] - 8.0) < 0.5
+    common = np.abs(fresh[:, 0] - 2.0) < 0.5
+    assert np.all(rare | common) and 0.4 < rare.mean() < 0.6
+    # Noise of 1% of each box width (0.1 in x, 0.01 in y), clipped to the box.
+    assert 0.05 < np.std(fresh[common, 0]) < 0.15 and 0.005 < np.std(fresh[common, 1]) < 0.015
+    edge = seeding.Redraw(box, {"corner": np.array([[10.0, 1.0]])}, near=1.0, jitter=0.1)
+    out = edge(key, 200)
+    assert np.all(out <= box.high) and np.all(out >= box.low)
+    # near = 0.5: about half near a success, the rest from the prior.
+    half = seeding.Redraw(box, successes, near=0.5, jitter=0.01)(key, 400)
+    by_success = (np.abs(half[:, 0] - 2.0) < 0.3) | (np.abs(half[:, 0] - 8.0) < 0.3)
+    assert 0.4 < by_success.mean() < 0.7  # the prior puts ~12% of its draws there too
+
+
+def test_screen_particles_hands_back_its_successes_by_task_plan(tiny_task):
+    task = tiny_task(goal_pos="0.2 0.3 0", radius=0.06)
+    seeded = seeding.screen_particles(task, jax.random.key(3), 8, screen=32)
+    theta, _ = seeding.seed_particles(task, jax.random.key(3), 8, screen=32)
+    np.testing.assert_array_equal(seeded.particles, theta)
+    assert set(seeded.successes) == set(seeded.screen.task_plans) == {"0-goal", "1-goal"}
+    for plan, members in seeded.successes.items():
+        assert len(members) == seeded.screen.task_plans[plan]
+        decoded = plans.decode(task, plans.simulate_c(task, members), members)
+        assert all(decoded.ok) and set(decoded.plan) == {plan}

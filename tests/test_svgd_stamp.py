@@ -279,3 +279,36 @@ def test_stall_rescue_redraws_a_plateau_particle_and_leaves_a_converging_one():
         run_stamp(bowl_and_plateau, start, rbf(), config, progress=False)
     with pytest.raises(ValueError, match="rescue_window"):
         StampConfig(rescue_window=-1)
+
+
+def narrow_valley(x):
+    """A valley 0.01 wide at x = 0.3 (log ρ = −(x − 0.3)²/10⁻⁴), steep beside it."""
+    return -jnp.sum((x - 0.3) ** 2, -1) / 1e-4
+
+
+def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
+    """Adam's first step is the learning rate whatever the gradient: out of the valley.
+
+    With backtracking the step is taken back and halved until the particle
+    climbs; without, its log density falls by orders of magnitude first (and
+    Adam's moments bring it back only slowly).
+    """
+    start = jnp.array([[0.3 + 1e-3], [0.3 - 2e-3]])
+    start_logp = np.asarray(narrow_valley(start))
+    config = StampConfig(sgd_learning_rate=0.05, svgd_max_iters=0, sgd_max_iters=30,
+                         min_iters=30)
+    plain = run_stamp(narrow_valley, start, rbf(), dataclasses.replace(config, backtrack=False),
+                      progress=False)
+    assert plain.diagnostics.logdensity_mean[1] < 100 * start_logp.mean()
+    assert plain.diagnostics.backtracked.sum() == 0
+    guarded = run_stamp(narrow_valley, start, rbf(), config, progress=False)
+    end = np.asarray(narrow_valley(guarded.particles))
+    assert np.all(end >= start_logp)  # never worse than the start
+    assert np.all(np.abs(np.asarray(guarded.particles)[:, 0] - 0.3) < 1e-3)
+    d = guarded.diagnostics
+    assert d.backtracked[0] == 0 and d.backtracked[1] == 2  # the first step, taken back
+    assert d.step_scale_median.min() < 0.1
+    # The displacement the convergence test reads is the step taken (back, here).
+    np.testing.assert_allclose(d.displacement[1], 0.05, rtol=1e-6)
+    with pytest.raises(ValueError, match="backtrack must be True or False"):
+        StampConfig(backtrack=1)

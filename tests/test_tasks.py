@@ -106,6 +106,8 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task):
     rescue = summary["rescue"]  # the stall rescue's report: re-draws, task plans before/after
     assert rescue["redraws"] == int(result.stamp.rescued.sum())
     assert [sum(c.values()) for c in rescue["task_plan_counts"].values()] == [8, 8]
+    loss = summary["loss"]  # the cost at the start, after SVGD and at the end (MJX, at Γ)
+    assert loss["particles"] == 8 and loss["mean"]["final"] < loss["mean"]["initial"]
     assert result.theta.shape == (8, 2)
     # Reaching the goal pays: the mean cost fell over the run.
     d = result.diagnostics
@@ -179,6 +181,28 @@ def test_format_table_text_and_markdown():
         "gradient model: unrolled (2 solver iterations); MJX vs MuJoCo C divergence p95 "
         "1e-09 m (tolerance 0.002 m)",
     ]
+    # A solve's summary also says how the particles fared and what SVGD did for the cost.
+    summary.update(verified_particle_share=0.25, rescue={"redraws": 3}, loss={
+        "mean": {"initial": 10.0, "svgd": 6.0, "final": 2.0}, "svgd_share": 0.5})
+    assert plans.format_table(summary).splitlines()[-1] == (
+        "particles: 25% end as verified plans; mean cost 10 at the start, 6 after SVGD, 2 at "
+        "the end (SVGD: 50% of the decrease); 3 stalled particles re-drawn")
+
+
+def test_loss_report_by_hand():
+    from mjstamp.solve import _loss_report
+
+    nan = float("nan")
+    costs = {"initial": np.array([10.0, 8.0, nan, 6.0]), "svgd": np.array([7.0, 5.0, 1.0, 3.0]),
+             "final": np.array([1.0, 2.0, 0.0, 3.0])}
+    out = _loss_report(costs)  # particle 2 is left out: not finite at the start
+    assert out["particles"] == 3
+    assert out["mean"] == {"initial": 8.0, "svgd": 5.0, "final": 2.0}
+    assert out["median"] == {"initial": 8.0, "svgd": 5.0, "final": 2.0}
+    assert out["svgd_share"] == 0.5  # (8 - 5) / (8 - 2)
+    costs["final"] = np.array([9.0, 9.0, 0.0, 9.0])  # the mean rose: no share to speak of
+    assert _loss_report(costs)["svgd_share"] is None
+    assert _loss_report({k: np.full(2, nan) for k in costs})["mean"]["final"] is None
 
 
 def test_free_joint_coordinates_and_spatial_goals():

@@ -112,6 +112,16 @@ class StampConfig:
         phases); after M consecutive such iterations it is re-drawn by
         `redraw` when one is given (and its optimizer moments zeroed), else it
         stays frozen.
+      backtrack: True: a step that lowers a particle's log density is taken
+        back (both phases). At its next iteration the particle returns to where
+        it was, its step scale halves (down to 2^-10) and its optimizer moments
+        are zeroed; an accepted step multiplies the scale by 1.25, up to 1, and
+        scales the particle's next optimizer update. Adam's per-coordinate
+        normalisation makes its first step the full learning rate whatever the
+        gradient, which throws particles out of valleys narrower than that
+        step; this keeps each particle's log density from falling (measured on
+        billiards: see the README). False: every update as the optimizer
+        gives it (Algorithm 1 as written).
     """
 
     svgd_learning_rate: float | Schedule = 1e-2
@@ -126,6 +136,7 @@ class StampConfig:
     jacobian: JacobianMode = "auto"
     rescue_window: int = 0
     nonfinite_redraw: int = 3
+    backtrack: bool = True
 
     def __post_init__(self):
         """Validates every field (ValueError naming the field and its range)."""
@@ -152,6 +163,8 @@ class StampConfig:
         _count(self.seed, "seed", 0)
         _count(self.rescue_window, "rescue_window", 0)
         _count(self.nonfinite_redraw, "nonfinite_redraw", 0)
+        if not isinstance(self.backtrack, bool):
+            raise ValueError(f"backtrack must be True or False; got {self.backtrack!r}")
         check_mode(self.jacobian, "jacobian")
 
 
@@ -197,6 +210,10 @@ class StampDiagnostics(NamedTuple):
       rescued: (T,) particles re-drawn after the iteration (`rescue_window`).
       nonfinite_redrawn: (T,) particles re-drawn after the iteration for
         being non-finite `nonfinite_redraw` iterations in a row.
+      backtracked: (T,) particles whose previous step lowered their log
+        density and was taken back at this iteration (`backtrack`).
+      step_scale_median: (T,) median over particles of the step scale
+        (`backtrack`; 1 when off).
     """
 
     logdensity_mean: np.ndarray
@@ -219,6 +236,8 @@ class StampDiagnostics(NamedTuple):
     self_weight_median: np.ndarray
     rescued: np.ndarray
     nonfinite_redrawn: np.ndarray
+    backtracked: np.ndarray
+    step_scale_median: np.ndarray
 
 
 class StampResult(NamedTuple):
@@ -322,6 +341,8 @@ class IterationRecord(NamedTuple):
     self_weight_median: Any
     rescued: Any
     nonfinite_redrawn: Any
+    backtracked: Any
+    step_scale_median: Any
 
 
 class LoopSnapshot(NamedTuple):
@@ -343,7 +364,9 @@ class LoopSnapshot(NamedTuple):
       svgd_particles: (n, d) particles at the end of SVGD; None in SVGD.
       svgd_converged: whether SVGD ended by the convergence test; None in SVGD.
       counters: the re-draw counters ({"stalled", "rescued", "failing",
-        "nonfinite_redrawn"}: (n,) ints each).
+        "nonfinite_redrawn"}: (n,) ints each) and the backtracking state
+        ({"guard_theta": (n, d) last accepted particles, "guard_logp": (n,)
+        their log densities (NaN: none yet), "guard_scale": (n,) step scales}).
     """
 
     phase: int
@@ -501,6 +524,7 @@ class _Loop:
         self.svgd_end = (None, None)  # (particles, converged) once SVGD is over
         self.rescue = _Rescue(config.rescue_window, redraw, n,
                               nonfinite_window=config.nonfinite_redraw)
+        self.guard = _Backtrack(n) if config.backtrack else None
         self.config = config
         self.jit = jit
         self.n = n
@@ -529,7 +553,8 @@ class _Loop:
             rows=list(self.rows), svgd_particles=self.svgd_end[0],
             svgd_converged=self.svgd_end[1],
             counters={"stalled": r.stalled.copy(), "rescued": r.counts.copy(),
-                      "failing": r.failing.copy(), "nonfinite_redrawn": r.nonfinite_counts.copy()},
+                      "failing": r.failing.copy(), "nonfinite_redrawn": r.nonfinite_counts.copy(),
+                      **(self.guard.counters() if self.guard is not None else {})},
         )
 
     def restore(self, snap: LoopSnapshot, shape: tuple[int, int]) -> None:
@@ -545,6 +570,8 @@ class _Loop:
         r.stalled, r.counts = (np.array(snap.counters[k]) for k in ("stalled", "rescued"))
         r.failing = np.array(snap.counters["failing"])
         r.nonfinite_counts = np.array(snap.counters["nonfinite_redrawn"])
+        if self.guard is not None:
+            self.guard.restore(snap.counters)
         self.bar.update(len(self.rows))
 
     def _split(self) -> jax.Array:
@@ -584,13 +611,23 @@ class _Loop:
                 return state, False
         step = (jax.jit(step) if self.jit is None
                 else self.jit(step, fresh_state, self.key, name))
+        if self.guard is not None and not done:
+            self.guard.reset()  # a new phase: a new objective, a new optimizer
         every = max(1, max_iters // 10)
         self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
         for t in range(len(done) + 1, max_iters + 1):
             started = time.perf_counter()
             self.key, sub = jax.random.split(self.key)
+            before = state
             state, info = step(state, sub)
             row, score_norm = _fetch(info, phase)
+            if self.guard is not None:
+                state, k, moved = self.guard(before, state, info, phase)
+                row = row._replace(backtracked=k,
+                                   step_scale_median=float(np.median(self.guard.scale)))
+                if moved is not None:  # the steps taken, not the optimizer's updates
+                    row = row._replace(displacement=float(np.mean(np.linalg.norm(moved, axis=1))),
+                                       displacement_per_coordinate=np.mean(np.abs(moved), 0))
             row = row._replace(step_seconds=time.perf_counter() - started)
             if threshold is None:
                 threshold = float(near_zero_threshold(score_norm, xp=np))
@@ -610,6 +647,9 @@ class _Loop:
                 if k:
                     self.say(f"{name.upper()} {t}: {k} particles non-finite "
                              f"{self.rescue.nonfinite_window} iterations in a row re-drawn")
+            if self.guard is not None and self.rescue.redrawn:
+                self.guard.forget(np.concatenate(self.rescue.redrawn))
+            self.rescue.redrawn = []
             if not self.rows and int(row.nonfinite_particles) == self.n:
                 raise ValueError(
                     f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {self.n} "
@@ -649,6 +689,7 @@ class _Rescue:
         self.failing = np.zeros(n, dtype=int)
         self.nonfinite_counts = np.zeros(n, dtype=int)
         self.fresh = np.zeros(0, dtype=int)  # re-drawn this iteration, not yet scored
+        self.redrawn: list[np.ndarray] = []  # indices re-drawn this iteration (the loop clears)
 
     def __call__(self, state, info: StepInfo, score_norm, threshold: float, key):
         """(state with the particles stalled `window` times re-drawn, how many)."""
@@ -697,8 +738,108 @@ class _Rescue:
         self.stalled[idx] = 0
         self.failing[idx] = 0
         self.fresh = idx
+        self.redrawn.append(idx)
         return state._replace(particles=particles.at[idx].set(fresh),
                               opt_state=jax.tree.map(reset, state.opt_state))
+
+
+def _zero_rows(opt_state, idx: np.ndarray, shape: tuple):
+    """The optimizer state with rows `idx` of every (n, d) leaf (Adam's moments) zeroed."""
+
+    def reset(leaf):
+        if hasattr(leaf, "shape") and leaf.shape == shape:
+            return leaf.at[idx].set(0)
+        return leaf
+
+    return jax.tree.map(reset, opt_state)
+
+
+class _Backtrack:
+    """Takes back steps that lowered a particle's log density (`StampConfig.backtrack`).
+
+    The step reports log ρ at the particles it started from, so a step's
+    outcome is known one iteration later: at iteration t, log ρ(θ_t) is
+    compared with log ρ at the particle's last accepted point. Where it fell,
+    the particle goes back to that point (the update just computed from θ_t
+    is dropped), its scale halves and its optimizer rows are zeroed; where it
+    did not, θ_t is accepted and the update from it is scaled. Particles whose
+    log density is not finite are left to the non-finite handling.
+    """
+
+    MIN_SCALE = 2.0 ** -10
+    GROW = 1.25
+
+    def __init__(self, n: int):
+        self.n = n
+        self.reset()
+
+    def reset(self) -> None:
+        """Forgets every accepted point; scales back to 1 (a new phase)."""
+        self.theta = None  # (n, d) host array once the first iteration is seen
+        self.logp = np.full(self.n, np.nan)
+        self.scale = np.ones(self.n)
+
+    def forget(self, idx: np.ndarray) -> None:
+        """Particles re-drawn: no accepted point, scale 1."""
+        self.logp[idx] = np.nan
+        self.scale[idx] = 1.0
+
+    def counters(self) -> dict:
+        theta = np.full((self.n, 0), np.nan) if self.theta is None else self.theta.copy()
+        return {"guard_theta": theta, "guard_logp": self.logp.copy(),
+                "guard_scale": self.scale.copy()}
+
+    def restore(self, counters: dict) -> None:
+        if "guard_scale" not in counters:
+            self.reset()
+            return
+        theta = np.array(counters["guard_theta"], dtype=float)
+        self.theta = theta if theta.size else None
+        self.logp = np.array(counters["guard_logp"], dtype=float)
+        self.scale = np.array(counters["guard_scale"], dtype=float)
+
+    def __call__(self, before, after, info: StepInfo, phase: int):
+        """(state after the guard, particles taken back, (n, d) steps or None if unchanged).
+
+        `before` stepped to `after`. A fall counts beyond a margin: in SGD
+        1e-12 relative (rounding), in SVGD max(1, d/2) nats, the depth of a
+        d-dimensional Gaussian's typical set below its mode, so the repulsion
+        may still spread particles over a mode but not throw them out of it.
+        """
+        logp = np.asarray(fetch(info.logdensity), dtype=float)
+        theta_t = np.asarray(fetch(before.particles), dtype=float)
+        if self.theta is None:
+            self.theta = theta_t.copy()
+        finite = np.isfinite(logp)
+        margin = 1e-12 * np.maximum(1.0, np.abs(self.logp))
+        if phase == PHASE_SVGD:
+            margin = np.maximum(margin, max(1.0, theta_t.shape[1] / 2))
+        fell = finite & np.isfinite(self.logp) & (logp < self.logp - margin)
+        accept = finite & ~fell
+        back = np.flatnonzero(fell)
+        self.scale[back] = np.maximum(self.scale[back] / 2, self.MIN_SCALE)
+        scaled = np.flatnonzero(accept & (self.scale < 1))
+        used = self.scale[scaled]  # the scale of the update just computed from θ_t
+        self.theta[accept] = theta_t[accept]
+        self.logp[accept] = logp[accept]
+        self.scale[accept] = np.minimum(self.scale[accept] * self.GROW, 1.0)
+        if back.size == 0 and scaled.size == 0:
+            return after, 0, None
+        particles = after.particles
+        dtype = particles.dtype
+        if scaled.size:
+            s = jnp.asarray(used, dtype)[:, None]
+            start = jnp.asarray(theta_t[scaled], dtype)
+            particles = particles.at[scaled].set(start + s * (particles[scaled] - start))
+        opt_state = after.opt_state
+        if back.size:
+            particles = particles.at[back].set(jnp.asarray(self.theta[back], dtype))
+            opt_state = _zero_rows(opt_state, back, particles.shape)
+        particles = jax.device_put(particles, after.particles.sharding)
+        moved = np.asarray(fetch(particles), dtype=float) - theta_t
+        moved[~finite] = 0.0  # frozen this iteration, as the step counts them
+        return (after._replace(particles=particles, opt_state=opt_state), int(back.size),
+                moved)
 
 
 def fetch(tree):
@@ -733,7 +874,8 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
     copied = {name: getattr(info, name) for name in _FROM_STEP}
     record, score_norm = fetch((
         IterationRecord(**{**dict.fromkeys(IterationRecord._fields), **copied})._replace(
-            phase=phase, rescued=0, nonfinite_redrawn=0),
+            phase=phase, rescued=0, nonfinite_redrawn=0, backtracked=0,
+            step_scale_median=1.0),
         info.score_norm,
     ))
     finite = score_norm[np.isfinite(score_norm)]
@@ -744,7 +886,7 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
 # dtype of each StampDiagnostics column; bandwidth is stacked apart (its width g may differ
 # between phases: SGD has none), and so is displacement_per_coordinate (its width is d).
 _COLUMN_DTYPES = {"phase": np.int8, "nonfinite_particles": int, "rescued": int,
-                  "nonfinite_redrawn": int}
+                  "nonfinite_redrawn": int, "backtracked": int}
 _WIDE = ("bandwidth", "displacement_per_coordinate")
 
 
