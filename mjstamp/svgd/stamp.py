@@ -730,17 +730,30 @@ class _Rescue:
             raise ValueError(f"redraw(key, {idx.size}) returned shape {fresh.shape}; "
                              f"expected ({idx.size}, {particles.shape[1]})")
 
-        def reset(leaf):  # Adam's moments of a re-drawn particle start from zero
-            if hasattr(leaf, "shape") and leaf.shape == particles.shape:
-                return leaf.at[idx].set(0)
-            return leaf
-
         self.stalled[idx] = 0
         self.failing[idx] = 0
         self.fresh = idx
         self.redrawn.append(idx)
-        return state._replace(particles=particles.at[idx].set(fresh),
-                              opt_state=jax.tree.map(reset, state.opt_state))
+        # Adam's moments of a re-drawn particle start from zero.
+        return state._replace(particles=_set_rows(particles, idx, np.asarray(fresh)),
+                              opt_state=_zero_rows(state.opt_state, idx, particles.shape))
+
+
+def _set_rows(array: jax.Array, idx: np.ndarray, rows) -> jax.Array:
+    """`array` with rows `idx` set to `rows`, with the array's own sharding.
+
+    N.B. written on the host and put back shard by shard: an array replicated
+    over several processes' devices takes no eager `.at[].set` (it is not fully
+    addressable), and the compiled step expects the sharding it was built for.
+    """
+    host = np.array(fetch(array))
+    host[idx] = rows
+    return _put(host, array)
+
+
+def _put(host: np.ndarray, like: jax.Array) -> jax.Array:
+    """A host array as a jax.Array with the sharding of `like` (over any processes)."""
+    return jax.make_array_from_callback(host.shape, like.sharding, lambda i: host[i])
 
 
 def _zero_rows(opt_state, idx: np.ndarray, shape: tuple):
@@ -748,7 +761,7 @@ def _zero_rows(opt_state, idx: np.ndarray, shape: tuple):
 
     def reset(leaf):
         if hasattr(leaf, "shape") and leaf.shape == shape:
-            return leaf.at[idx].set(0)
+            return _set_rows(leaf, idx, 0)
         return leaf
 
     return jax.tree.map(reset, opt_state)
@@ -825,18 +838,16 @@ class _Backtrack:
         self.scale[accept] = np.minimum(self.scale[accept] * self.GROW, 1.0)
         if back.size == 0 and scaled.size == 0:
             return after, 0, None
-        particles = after.particles
-        dtype = particles.dtype
+        host = np.array(fetch(after.particles))
         if scaled.size:
-            s = jnp.asarray(used, dtype)[:, None]
-            start = jnp.asarray(theta_t[scaled], dtype)
-            particles = particles.at[scaled].set(start + s * (particles[scaled] - start))
+            start = theta_t[scaled].astype(host.dtype)
+            host[scaled] = start + used.astype(host.dtype)[:, None] * (host[scaled] - start)
         opt_state = after.opt_state
         if back.size:
-            particles = particles.at[back].set(jnp.asarray(self.theta[back], dtype))
-            opt_state = _zero_rows(opt_state, back, particles.shape)
-        particles = jax.device_put(particles, after.particles.sharding)
-        moved = np.asarray(fetch(particles), dtype=float) - theta_t
+            host[back] = self.theta[back]
+            opt_state = _zero_rows(opt_state, back, host.shape)
+        particles = _put(host, after.particles)
+        moved = host.astype(float) - theta_t
         moved[~finite] = 0.0  # frozen this iteration, as the step counts them
         return (after._replace(particles=particles, opt_state=opt_state), int(back.size),
                 moved)
