@@ -113,7 +113,8 @@ class StampConfig:
         `redraw` when one is given (and its optimizer moments zeroed), else it
         stays frozen.
       backtrack: True: a step that lowers a particle's log density is taken
-        back (both phases). At its next iteration the particle returns to where
+        back (both phases; in discrete SVGD the target at the decoded plan,
+        log p(Γ(θ)), is the one guarded). At its next iteration the particle returns to where
         it was, its step scale halves (down to 2^-10) and its optimizer moments
         are zeroed; an accepted step multiplies the scale by 1.25, up to 1, and
         scales the particle's next optimizer update. Adam's per-coordinate
@@ -770,6 +771,10 @@ def _zero_rows(opt_state, idx: np.ndarray, shape: tuple):
 class _Backtrack:
     """Takes back steps that lowered a particle's log density (`StampConfig.backtrack`).
 
+    The log density guarded is the step's `guard_logdensity`: in discrete SVGD
+    the target at the decoded plan, log p(Γ(θ)), so a step of the relaxed
+    surrogate that makes the plan itself worse is taken back.
+
     The step reports log ρ at the particles it started from, so a step's
     outcome is known one iteration later: at iteration t, log ρ(θ_t) is
     compared with log ρ at the particle's last accepted point. Where it fell,
@@ -819,7 +824,7 @@ class _Backtrack:
         d-dimensional Gaussian's typical set below its mode, so the repulsion
         may still spread particles over a mode but not throw them out of it.
         """
-        logp = np.asarray(fetch(info.logdensity), dtype=float)
+        logp = np.asarray(fetch(info.guard_logdensity), dtype=float)
         theta_t = np.asarray(fetch(before.particles), dtype=float)
         if self.theta is None:
             self.theta = theta_t.copy()

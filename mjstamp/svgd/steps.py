@@ -110,6 +110,9 @@ class StepInfo(NamedTuple):
         the share of a particle's own score in its driving term (1/n when the
         kernel is flat over all particles, 1 when no other particle is within
         reach); NaN for SGD, which follows each particle's own score alone.
+      guard_logdensity: (n,) the log density a step must not lower
+        (`StampConfig.backtrack`): log p(Γ(θ_i)), the plan as decoded, in
+        discrete SVGD; log ρ(θ_i) otherwise.
     """
 
     logdensity: jax.Array
@@ -128,6 +131,7 @@ class StepInfo(NamedTuple):
     direction_norm_mean: jax.Array
     displacement_per_coordinate: jax.Array
     self_weight_median: jax.Array
+    guard_logdensity: jax.Array
 
 
 def init(particles: jax.Array, optimizer: optax.GradientTransformation) -> SVGDState:
@@ -328,6 +332,7 @@ def stein_direction(
         ok = _finite_rows(logp, score)
         features = None
     score = _zero_rows(score, ok)
+    log_target = None
     if log_target_fn is None:
         a = ok / jnp.maximum(jnp.sum(ok), 1)
     else:
@@ -353,14 +358,14 @@ def stein_direction(
     own = jnp.where(total > 0, jnp.diagonal(kw) / jnp.where(total > 0, total, 1.0), jnp.nan)
     info = _info(
         logp, ok, score, flat_bandwidths(terms.params), a, phi,
-        driving=driving, repulsion=terms.repulsion, self_weight=own,
+        driving=driving, repulsion=terms.repulsion, self_weight=own, guard=log_target,
     )  # fmt: skip
     return phi, info
 
 
 def _info(
     logp, ok, score, bandwidth, weights, direction, *, driving=None, repulsion=None,
-    self_weight=None,
+    self_weight=None, guard=None,
 ):
     """StepInfo of a step at the particles it starts from (optimizer fields NaN)."""
     count = jnp.sum(ok)
@@ -392,6 +397,7 @@ def _info(
         direction_norm_mean=jnp.mean(jnp.linalg.norm(direction, axis=1)),
         displacement_per_coordinate=jnp.full(direction.shape[1:], jnp.nan, logp.dtype),
         self_weight_median=nan if self_weight is None else jnp.nanmedian(self_weight),
+        guard_logdensity=logp if guard is None else jnp.where(ok, guard, jnp.nan),
     )
 
 
