@@ -84,9 +84,11 @@ class SolveConfig:
         not finite is frozen for the iteration and left out of the kernel of
         the others; after this many such iterations in a row (>= 1; 0: never)
         it is re-drawn from the prior (`svgd.StampConfig.nonfinite_redraw`).
-      backtrack: take back a step that lowers a particle's log density, and
-        halve that particle's step (`svgd.StampConfig.backtrack`); False: every
-        optimizer update as given (Algorithm 1 as written).
+      backtrack: in SVGD, take back a step that lowers a particle's log
+        density by more than max(1, d/2) nats and halve that particle's step;
+        in SGD, end each particle at the best point it visited
+        (`svgd.StampConfig.backtrack`); False: every optimizer update as given
+        and the last iterate returned (Algorithm 1 as written).
       devices: shard the particles' rollouts over this many devices
         (`mjstamp.parallel`): host devices on a CPU (`mjstamp.configure(devices=N)`
         first), local GPUs on a GPU machine; None: every device JAX sees. The
