@@ -71,7 +71,7 @@ class SolveConfig:
         of SVGD or at the start if that one was (no plan found is lost).
       rescue_window: 0 (off, the default) or R >= 1: a particle that feels no
         gradient and sits at or below the median log posterior for R
-        consecutive SVGD iterations is re-drawn from the prior
+        consecutive SVGD iterations is re-drawn (see `rescue_near`)
         (`svgd.StampConfig.rescue_window`); the summary reports re-draws and
         the task-plan counts of the initial and final particles. Off by
         default: not yet measured on the scene suite.
@@ -83,7 +83,7 @@ class SolveConfig:
       nonfinite_redraw: a particle whose log posterior, score or features are
         not finite is frozen for the iteration and left out of the kernel of
         the others; after this many such iterations in a row (>= 1; 0: never)
-        it is re-drawn from the prior (`svgd.StampConfig.nonfinite_redraw`).
+        it is re-drawn (see `rescue_near`) (`svgd.StampConfig.nonfinite_redraw`).
       backtrack: in SVGD, take back a step that lowers a particle's log
         density by more than max(1, d/2) nats and halve that particle's step;
         in SGD, end each particle at the best point it visited

@@ -64,7 +64,7 @@ def _group_keys(decoded: plans_mod.Decoded) -> list[str]:
 
 
 def seed_particles(
-    problem, key: jax.Array, n: int, *, screen: int = 16, chunk: int = 256
+    problem, key: jax.Array, n: int, *, screen: int = 64, chunk: int = 256
 ) -> tuple[np.ndarray, Screen]:
     """Initial particles (n, d) chosen from `screen · n` candidates screened in MuJoCo C.
 
@@ -99,7 +99,7 @@ class Seeded:
 
 
 def screen_particles(
-    problem, key: jax.Array, n: int, *, screen: int = 16, chunk: int = 256
+    problem, key: jax.Array, n: int, *, screen: int = 64, chunk: int = 256
 ) -> Seeded:
     """`seed_particles`, also handing back the screen's successes by task plan."""
     started = time.perf_counter()

@@ -695,7 +695,10 @@ def _loss_report(costs: dict[str, np.ndarray]) -> dict:
 
     Over the particles whose cost is finite at all three; `svgd_share` is the
     SVGD phase's share of the decrease of the mean, (initial - svgd) /
-    (initial - final), None when the mean did not decrease.
+    (initial - final), None when the mean did not decrease: negative when
+    SVGD raised the mean, above 1 when SGD did. "final" is STAMP's own end,
+    before `keep_visited` and repair. The two earlier snapshots are evaluated
+    whether or not `keep_visited` is on (one MJX forward and C replay each).
     """
     finite = np.all([np.isfinite(c) for c in costs.values()], axis=0)
     out: dict = {"particles": int(finite.sum())}

@@ -322,3 +322,32 @@ def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
     assert best.diagnostics.backtracked.sum() == 0
     with pytest.raises(ValueError, match="backtrack must be True or False"):
         StampConfig(backtrack=1)
+
+
+def cliff(x):
+    """log ρ = x up to a cliff at x = 0.35, NaN beyond it (a rollout that blew up)."""
+    return jnp.where(x[:, 0] < 0.35, x[:, 0], jnp.nan)
+
+
+def test_backtrack_takes_a_step_into_a_non_finite_region_back():
+    """The particle returns to its last accepted point instead of freezing beyond the cliff."""
+    start = jnp.array([[0.34], [-0.5]])
+    drawn = []
+
+    def redraw(key, k):
+        drawn.append(k)
+        return jnp.full((k, 1), -0.9)
+
+    config = StampConfig(svgd_learning_rate=0.05, svgd_max_iters=12, sgd_max_iters=0,
+                         min_iters=12, nonfinite_redraw=2)
+    kernel = rbf(bandwidth=1e-3)
+    result = run_stamp(cliff, start, kernel, config, progress=False, redraw=redraw)
+    d = result.diagnostics
+    assert d.nonfinite_particles[1] == 1 and d.backtracked[1] == 1  # over the cliff, back
+    assert drawn == [] and result.nonfinite_redrawn.sum() == 0  # never frozen twice in a row
+    final = np.asarray(result.particles)[:, 0]
+    assert np.all(np.isfinite(np.asarray(cliff(result.particles))))
+    assert 0.3 < final[0] < 0.35
+    plain = run_stamp(cliff, start, kernel, dataclasses.replace(config, backtrack=False),
+                      progress=False, redraw=redraw)
+    assert drawn == [1] and plain.nonfinite_redrawn[0] == 1  # frozen there, then re-drawn

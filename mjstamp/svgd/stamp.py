@@ -248,8 +248,10 @@ class StampResult(NamedTuple):
     """What `run_stamp` returns.
 
     Attributes:
-      particles: (n, d) final particles (after SGD).
-      svgd_particles: (n, d) particles at the end of the SVGD phase.
+      particles: (n, d) final particles (after SGD; with `backtrack`, the best
+        point each particle visited in SGD).
+      svgd_particles: (n, d) particles at the end of the SVGD phase (with
+        `backtrack`, the last points it accepted).
       diagnostics: `StampDiagnostics`.
       svgd_iters: SVGD iterations run.
       sgd_iters: SGD iterations run.
@@ -481,6 +483,9 @@ def run_stamp(
                 resume=resume,
             )
             svgd_iters = len(loop.rows)
+            if loop.guard is not None and svgd_iters:
+                # The last update was never scored: SVGD ends at the points it accepted.
+                svgd = svgd._replace(particles=loop.guard.best(svgd.particles))
         loop.svgd_end = (np.asarray(svgd.particles), svgd_converged)
         loop.bar.total = svgd_iters + config.sgd_max_iters
         loop.bar.refresh()
@@ -653,7 +658,9 @@ class _Loop:
                 if k:
                     self.say(f"{name.upper()} {t}: {k} particles non-finite "
                              f"{self.rescue.nonfinite_window} iterations in a row re-drawn")
-            if self.guard is not None and self.rescue.redrawn:
+            if self.guard is not None and self.rescue.redrawn and phase == PHASE_SVGD:
+                # N.B. in SGD the best point a particle visited stays its best: the
+                # fresh particle's points compete with it.
                 self.guard.forget(np.concatenate(self.rescue.redrawn))
             self.rescue.redrawn = []
             if not self.rows and int(row.nonfinite_particles) == self.n:
@@ -762,14 +769,28 @@ def _put(host: np.ndarray, like: jax.Array) -> jax.Array:
     return jax.make_array_from_callback(host.shape, like.sharding, lambda i: host[i])
 
 
-def _zero_rows(opt_state, idx: np.ndarray, shape: tuple):
-    """The optimizer state with rows `idx` of every (n, d) leaf (Adam's moments) zeroed."""
+def _zero_rows(opt_state, idx: np.ndarray, shape: tuple, *, first_moment_only: bool = False):
+    """The optimizer state with rows `idx` of every (n, d) leaf (Adam's moments) zeroed.
+
+    first_moment_only: zero only Adam's μ rows and keep ν (a step taken back).
+    N.B. Adam's step count is one scalar for all particles, so zeroing both
+    moments at count c makes the next updates (1-β₁)/(1-β₁^c)/√((1-β₂)/(1-β₂^c))
+    times the learning rate, up to ~3x for large c; with ν kept (it remembers
+    the steep gradient the failed step met) the restart is gentler than the
+    step taken back. An optimizer without an Adam state has every (n, d) row zeroed.
+    """
 
     def reset(leaf):
         if hasattr(leaf, "shape") and leaf.shape == shape:
             return _set_rows(leaf, idx, 0)
         return leaf
 
+    if first_moment_only:
+        adam = lambda x: isinstance(x, optax.ScaleByAdamState)  # noqa: E731
+        if any(adam(x) for x in jax.tree.leaves(opt_state, is_leaf=adam)):
+            return jax.tree.map(
+                lambda x: x._replace(mu=jax.tree.map(reset, x.mu)) if adam(x) else x,
+                opt_state, is_leaf=adam)
     return jax.tree.map(reset, opt_state)
 
 
@@ -810,7 +831,10 @@ class _Backtrack:
         self.scale[idx] = 1.0
 
     def best(self, particles: jax.Array) -> jax.Array:
-        """`particles` with each one that has a finite best replaced by its best point."""
+        """`particles` with each one that has a scored point replaced by it.
+
+        In SGD the best point each particle visited; in SVGD its last accepted one.
+        """
         rows = np.flatnonzero(np.isfinite(self.logp))
         if self.theta is None or rows.size == 0:
             return particles
@@ -850,7 +874,9 @@ class _Backtrack:
             self.logp[better] = logp[better]
             return after, 0, None
         margin = max(1.0, theta_t.shape[1] / 2)
-        fell = finite & np.isfinite(self.logp) & (logp < self.logp - margin)
+        # N.B. a step into a region where log ρ is not finite is a fall too: the
+        # particle goes back to its last accepted point instead of freezing there.
+        fell = np.isfinite(self.logp) & (~finite | (logp < self.logp - margin))
         accept = finite & ~fell
         back = np.flatnonzero(fell)
         self.scale[back] = np.maximum(self.scale[back] / 2, self.MIN_SCALE)
@@ -868,10 +894,9 @@ class _Backtrack:
         opt_state = after.opt_state
         if back.size:
             host[back] = self.theta[back]
-            opt_state = _zero_rows(opt_state, back, host.shape)
+            opt_state = _zero_rows(opt_state, back, host.shape, first_moment_only=True)
         particles = _put(host, after.particles)
         moved = host.astype(float) - theta_t
-        moved[~finite] = 0.0  # frozen this iteration, as the step counts them
         return (after._replace(particles=particles, opt_state=opt_state), int(back.size),
                 moved)
 

@@ -397,7 +397,7 @@ def _info(
         direction_norm_mean=jnp.mean(jnp.linalg.norm(direction, axis=1)),
         displacement_per_coordinate=jnp.full(direction.shape[1:], jnp.nan, logp.dtype),
         self_weight_median=nan if self_weight is None else jnp.nanmedian(self_weight),
-        guard_logdensity=logp if guard is None else jnp.where(ok, guard, jnp.nan),
+        guard_logdensity=jnp.where(ok, logp if guard is None else guard, jnp.nan),
     )
 
 
