@@ -325,7 +325,7 @@ def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
 
 
 def cliff(x):
-    """log ρ = x up to a cliff at x = 0.35, NaN beyond it (a rollout that blew up)."""
+    """Log ρ = x up to a cliff at x = 0.35, NaN beyond it (a rollout that blew up)."""
     return jnp.where(x[:, 0] < 0.35, x[:, 0], jnp.nan)
 
 
