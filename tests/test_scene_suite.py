@@ -201,3 +201,8 @@ def test_scene_suite_runs_end_to_end(tmp_path):
     assert row["scene"] == "pendulum_bells" and row["particles"] == 4
     assert 0 <= row["verified"] <= row["returned"] <= 4
     assert row["random_task_plans"] >= 0 and row["wall_s"] > 0
+    # Sharded as `mjstamp solve` shards (one host device per core), with issue 11's targets.
+    assert report["devices"] >= 1
+    met = row["targets_particles"]
+    assert set(met) == {"verified_particle_share", "at_least_random", "twice_random"}
+    assert met["at_least_random"] == (row["task_plans_found"] >= row["random_task_plans"])
