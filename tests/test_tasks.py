@@ -109,9 +109,8 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task):
     loss = summary["loss"]  # the cost at the start, after SVGD and at the end (MJX, at Γ)
     assert loss["particles"] == 8 and loss["mean"]["final"] < loss["mean"]["initial"]
     assert result.theta.shape == (8, 2)
-    # Reaching the goal pays: the mean cost fell over the run.
-    d = result.diagnostics
-    assert d.logdensity_mean[-1] > d.logdensity_mean[0]
+    # Reaching the goal pays: the mean cost fell over the run (`loss` above). N.B. the last
+    # iterate's log density need not be higher: SGD returns each particle's best point.
     written = result.save(tmp_path, figures=False)
     assert {p.name for p in written} == {
         "plans.json", "particles.npz", "trajectories.npz", "scene.mjb"}
