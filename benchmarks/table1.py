@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 TASKS = {"billiards": {}, "pushing": {"max_pushes": 2}}
@@ -43,8 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     import mjstamp
+    from mjstamp.cli import _host_devices
 
-    devices = args.devices or max(1, min(os.cpu_count() or 1, 8))
+    devices = args.devices or _host_devices("auto")  # one per core, at most 8
     mjstamp.configure(devices=devices, strict_devices=False)
     from mjstamp import cli, tasks
     from mjstamp.baselines.compare import compare, format_table, parse_methods

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 import numpy as np
@@ -88,8 +87,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seeds {args.seeds} must be >= 1")
 
     import mjstamp
+    from mjstamp.cli import _host_devices
 
-    mjstamp.configure(devices=args.devices or max(1, min(os.cpu_count() or 1, 8)),
+    mjstamp.configure(devices=args.devices or _host_devices("auto"),  # one per core, at most 8
                       strict_devices=False)
     from mjstamp import cli
 
