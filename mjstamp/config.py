@@ -89,6 +89,10 @@ class SolveConfig:
         in SGD, end each particle at the best point it visited
         (`svgd.StampConfig.backtrack`); False: every optimizer update as given
         and the last iterate returned (Algorithm 1 as written).
+      robustness_samples: M perturbed MuJoCo C replays per verified plan under
+        the task's uncertain physics (`Task.uncertain`, the defaults when it
+        declared none), for its robustness score (`plans.robustness`); 0: no
+        score. The same draws for every plan, seeded by the solve's seed.
       devices: shard the particles' rollouts over this many devices
         (`mjstamp.parallel`): host devices on a CPU (`mjstamp.configure(devices=N)`
         first), local GPUs on a GPU machine; None: every device JAX sees. The
@@ -120,13 +124,14 @@ class SolveConfig:
     rescue_near: float = 0.5
     nonfinite_redraw: int = 3
     backtrack: bool = True
+    robustness_samples: int = 32
     devices: int | None = None
 
     def __post_init__(self):
         ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
                 "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
                 "repair_samples": 1, "screen": 1, "rescue_window": 0,
-                "nonfinite_redraw": 0, "devices": 1}
+                "nonfinite_redraw": 0, "robustness_samples": 0, "devices": 1}
         for name, low in ints.items():
             value = getattr(self, name)
             if value is None and name in ("max_solver_iterations", "devices"):

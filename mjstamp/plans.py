@@ -17,6 +17,7 @@ import re
 import shlex
 import tempfile
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -28,14 +29,14 @@ import numpy as np
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.fileio import probe, write_atomic
 from mjstamp.parallel import local_device
-from mjstamp.scenes import mjx
+from mjstamp.scenes import mjx, uncertainty
 from mjstamp.scenes.fidelity import describe
 from mjstamp.scenes.rollout import replay as replay_c
 from mjstamp.tasks.declaration import Kind
 from mjstamp.tasks.problem import FIELDS, Decoded, Problem
 
-__all__ = ["Decoded", "Replay", "cost_c", "decode", "format_table", "group", "load",
-           "repair", "save", "simulate_c", "simulate_mjx"]
+__all__ = ["Decoded", "Replay", "Robustness", "cost_c", "decode", "format_table", "group",
+           "load", "repair", "robustness", "save", "simulate_c", "simulate_mjx"]
 
 # 2: scene.mjb, qpos0/qvel0/qvel/ctrl in trajectories.npz; 3: config split into task
 # and solve settings, fidelity, screen, repaired and source per plan.
@@ -295,19 +296,115 @@ def repair(
     return out
 
 
+@dataclasses.dataclass
+class Robustness:
+    """How m plans fare under the task's uncertain physics (`robustness`).
+
+    Attributes:
+      success: (m,) share of the M perturbed MuJoCo C replays whose success
+        predicate holds.
+      same_plan: (m,) share that succeed with the plan's own task plan.
+      cost_median, cost_std: (m,) median and standard deviation of the task's
+        cost C over the M replays (failed replays included; a replay that
+        blew up counts as +inf in the median and is left out of the spread).
+      samples: M.
+      seed: the draws' seed.
+      rollouts: MuJoCo C rollouts spent (m · M).
+      seconds: wall time.
+      uncertain: the uncertainty scored under (`Uncertain.describe` each).
+      declared: whether the task declared it (else the defaults).
+    """
+
+    success: np.ndarray
+    same_plan: np.ndarray
+    cost_median: np.ndarray
+    cost_std: np.ndarray
+    samples: int
+    seed: int
+    rollouts: int
+    seconds: float
+    uncertain: list
+    declared: bool
+
+
+def robustness(task, theta: np.ndarray, plan: np.ndarray | None = None, *, samples: int = 32,
+               seed: int = 0, max_steps: int = 1 << 19) -> Robustness:
+    """Replays plans under M perturbed models and initial states in MuJoCo C.
+
+    Every plan meets the same M draws of the task's uncertainty (`Task.uncertain`,
+    the defaults when it declared none; `scenes.uncertainty.sample`): M models
+    with perturbed friction, mass, ... and M offsets of the initial positions,
+    all replayed in one batched `mujoco.rollout` per chunk of plans.
+
+    Args:
+      task: the `Task` or `Problem`.
+      theta: (m, d) plans.
+      plan: (m,) their task plans (nominal replay), for `same_plan`; None:
+        `same_plan` is `success`.
+      samples: M >= 1 perturbed replays per plan.
+      seed: seeds the draws (the same seed, the same scores).
+      max_steps: rollout steps held in memory at once (chunks of plans).
+
+    Returns:
+      A `Robustness`.
+    """
+    started = time.perf_counter()
+    problem = _problem(task)
+    samples = int(samples)
+    if samples < 1:
+        raise MjstampError(f"robustness samples={samples} must be >= 1")
+    theta = np.asarray(theta, np.float64).reshape(-1, problem.dim)
+    m = len(theta)
+    out = Robustness(np.zeros(m), np.zeros(m), np.full(m, np.inf), np.full(m, np.nan),
+                     samples, int(seed), m * samples, 0.0,
+                     [u.describe() for u in problem.uncertain], problem.uncertain_declared)
+    if m == 0:
+        return out
+    draws = uncertainty.sample(problem.scene.m, problem.uncertain, samples, seed)
+    zero = uncertainty.is_zero(problem.uncertain)
+    per_chunk = max(1, max_steps // (samples * problem.horizon))
+    for start in range(0, m, per_chunk):
+        rows = np.arange(start, min(start + per_chunk, m))
+        th = np.repeat(theta[rows], samples, axis=0)
+        qpos0, qvel0, ctrl = problem.inputs(th, xp=np)
+        qpos0 = np.asarray(qpos0, np.float64) + np.tile(draws.qpos_noise, (len(rows), 1))
+        ctrl = np.asarray(ctrl, np.float64)
+        states = replay_c(problem.scene, qpos0, qvel0, ctrl, fields=("qpos", "qvel"),
+                          solver="scene", models=None if zero else draws.models * len(rows))
+        replay = Replay(problem, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
+        decoded = problem.decode(replay, th)
+        cost = cost_c(problem, replay, th).reshape(len(rows), samples)
+        ok = decoded.ok.reshape(len(rows), samples)
+        out.success[rows] = ok.mean(axis=1)
+        if plan is None:
+            out.same_plan[rows] = out.success[rows]
+        else:
+            same = decoded.plan.reshape(len(rows), samples) == np.asarray(plan)[rows, None]
+            out.same_plan[rows] = (ok & same).mean(axis=1)
+        out.cost_median[rows] = np.median(cost, axis=1)
+        finite = np.where(np.isfinite(cost), cost, np.nan)
+        with warnings.catch_warnings():  # a row that blew up in every replay: NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out.cost_std[rows] = np.nanstd(finite, axis=1)
+    out.seconds = time.perf_counter() - started
+    return out
+
+
 def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:
     """Task plans of a Task's or Problem's particles θ read off a replay (`Problem.decode`)."""
     return _problem(task).decode(replay, theta)
 
 
 def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: Decoded,
-          repaired: np.ndarray | None = None):
+          repaired: np.ndarray | None = None, robustness: np.ndarray | None = None):
     """Rows of the result table: one per task plan found among returned plans.
 
     Plans are grouped by the task plan of their MuJoCo C replay (what actually
     happens); a row counts the returned plans with that task plan, how many of
     them succeeded in C (verified), how many of those only after repair, and
-    the best MJX cost among the verified.
+    the best MJX cost among the verified; with `robustness` ((n,) success
+    shares under uncertain physics, NaN where not scored), the best and the
+    median score of its verified plans.
     """
     repaired = np.zeros(len(cost), bool) if repaired is None else repaired
     rows: dict[str, dict[str, Any]] = {}
@@ -327,6 +424,11 @@ def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: 
     out = sorted(rows.values(), key=lambda r: (-r["verified"], r["task_plan"]))
     for r in out:
         r["verified_share"] = r["verified"] / r["plans"]
+        if robustness is not None:
+            scores = [float(robustness[i]) for i in r["particles"]
+                      if verified.ok[i] and np.isfinite(robustness[i])]
+            r["robustness_best"] = max(scores) if scores else None
+            r["robustness_median"] = float(np.median(scores)) if scores else None
     return out
 
 
@@ -347,6 +449,26 @@ def _particles_line(summary: dict) -> str:
     return line
 
 
+def _robustness_line(robust: dict | None) -> str:
+    """A line 'robustness: ...' (what was perturbed, how many replays), or ''."""
+    if not robust:
+        return ""
+    parts = []
+    for u in robust["uncertain"]:
+        what = (f"{u['spread'] * 1000:.3g} mm" if u["kind"] == "position"
+                else f"±{u['spread']:.0%}")
+        if u["distribution"] == "normal":
+            what = "σ " + what.lstrip("±")
+        count = len(u["names"])
+        parts.append(f"{u['kind']} {what} ({count} {'element' if count == 1 else 'elements'})")
+    source = "declared" if robust["declared"] else "the default uncertainty"
+    median = robust.get("median")
+    return (f"\nrobustness: success share of {robust['samples']} perturbed MuJoCo C replays per "
+            f"verified plan, {source}: {', '.join(parts) or 'nothing'}"
+            + ("" if median is None else f"; median {median:.0%}")
+            + f" ({robust['seconds']:.1f} s)")
+
+
 def format_table(summary: dict, *, markdown: bool = False) -> str:
     """The table of task plans `mjstamp solve` prints, from a solve's summary.
 
@@ -364,6 +486,12 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
          f"{r['verified_share']:.0%}")
         for r in summary["task_plans"]
     ]
+    robust = summary.get("robustness")
+    if robust:  # N.B. results written before robustness scores have none
+        header += ("robust best/median",)
+        body = [b + ("-" if r.get("robustness_best") is None else
+                     f"{r['robustness_best']:.0%}/{r['robustness_median']:.0%}",)
+                for b, r in zip(body, summary["task_plans"], strict=True)]
     title = (f"task {summary['task']}: {summary['particles']} particles, "
              f"{summary['wall_time_s']:.1f} s; {summary['returned_plans']} plans returned, "
              f"{summary['verified_fraction']:.0%} verified in MuJoCo C")
@@ -385,7 +513,7 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
                   ", over it at the final particles: their plans are verified in C") + ")"
                if tol is not None else "")
         )
-    footer += _particles_line(summary)
+    footer += _particles_line(summary) + _robustness_line(robust)
     if markdown:
         lines = ["| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 1)]
         lines += ["| `" + b[0] + "` | " + " | ".join(b[1:]) + " |" for b in body]

@@ -114,6 +114,8 @@ class SolveResult:
         end of SVGD and at the end, and the SVGD phase's share of the decrease
         (`_loss_report`).
       devices: how many devices the particles were sharded over.
+      robustness: each verified plan's score under the task's uncertain physics
+        (`_robustness`), or None (`SolveConfig.robustness_samples` = 0).
       compiles: the XLA compiles the solve did (`_Compiles.report`: count and
         seconds of those >= 0.5 s, the largest by function).
     """
@@ -140,6 +142,7 @@ class SolveResult:
     loss: dict | None = None
     compiles: dict | None = None
     devices: int = 1
+    robustness: dict | None = None
 
     @property
     def task(self) -> Problem:
@@ -186,9 +189,11 @@ class SolveResult:
             },
             "task_plans": [
                 {k: r[k] for k in ("task_plan", "code", "plans", "verified", "repaired",
-                                   "verified_share", "best_cost")}
+                                   "verified_share", "best_cost", "robustness_best",
+                                   "robustness_median") if k in r}
                 for r in self.rows
             ],
+            "robustness": self._robustness_summary(),
             "plans": self._plans(),
             "iteration_seconds": _iteration_seconds(self.diagnostics),
             "stamp": {
@@ -206,6 +211,28 @@ class SolveResult:
             out["coverage_detail"] = coverage
         return out
 
+    def _robustness_summary(self) -> dict | None:
+        rob = self.robustness
+        if rob is None:
+            return None
+        scored = rob["success"][np.isfinite(rob["success"])]
+        return {k: rob[k] for k in ("samples", "seed", "seconds", "rollouts", "uncertain",
+                                    "declared")} | {
+            "scored_plans": len(scored),
+            "median": float(np.median(scored)) if len(scored) else None,
+        }
+
+    def _plan_robustness(self, i: int) -> dict:
+        """A verified plan's scores ({} when not scored)."""
+        rob = self.robustness
+        if rob is None or not np.isfinite(rob["success"][i]):
+            return {}
+        spread = rob["cost_std"][i]
+        return {"robustness": float(rob["success"][i]),
+                "robust_same_plan": float(rob["same_plan"][i]),
+                "robust_cost_median": float(rob["cost_median"][i]),
+                "robust_cost_std": float(spread) if np.isfinite(spread) else None}
+
     def _plans(self) -> list[dict]:
         params = self.problem.unpack(self.theta)
         return [
@@ -218,6 +245,7 @@ class SolveResult:
                 "source": str(self.source[i]),
                 "cost": float(self.cost[i]),
                 "motion_plan": {name: np.asarray(val[i]).tolist() for name, val in params.items()},
+                **self._plan_robustness(i),
             }
             for i in np.flatnonzero(self.returned)
         ]
@@ -236,6 +264,8 @@ class SolveResult:
             "logdensity_mean": d.logdensity_mean, "logdensity_max": d.logdensity_max,
             "phase": d.phase, "displacement": d.displacement, "step_seconds": d.step_seconds,
         }
+        if self.robustness is not None:
+            particles["robustness"] = self.robustness["success"]
         idx = np.flatnonzero(self.returned)
         qpos0, qvel0, _ = self.problem.inputs(self.theta[idx], xp=np)
         trajectories = {
@@ -577,6 +607,9 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     theta, repaired, outcome = _repair(problem, cfg, theta, returned, outcome, evaluate, seed,
                                        say)
     clock["repair"] = time.perf_counter()
+    robust = _robustness(problem, cfg, theta, returned & outcome.verified.ok,
+                         outcome.verified.plan, seed, say)
+    clock["robustness"] = time.perf_counter()
     report.update(_final_fidelity(problem, outcome, calibration, stamp, len(theta)))
     return SolveResult(
         problem=problem, config={"seed": seed, "task": dict(problem.settings),
@@ -586,11 +619,11 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         predicted=outcome.predicted, verified=outcome.verified, replay=outcome.replay,
         diagnostics=stamp.diagnostics, stamp=stamp,
         rows=plans_mod.group(outcome.cost, returned, outcome.predicted, outcome.verified,
-                             repaired),
+                             repaired, None if robust is None else robust["success"]),
         timings=_timings(clock), fidelity=report,
         screen=None if screen is None else screen.as_dict(), source=source,
         rescue=_rescue_report(problem, cfg, stamp, visited["initial"][1], outcome),
-        devices=devices, loss=loss,
+        devices=devices, loss=loss, robustness=robust,
     )
 
 
@@ -627,7 +660,7 @@ class _Compiles:
 
 
 def _timings(clock: dict[str, float]) -> dict[str, float]:
-    order = ["start", "screen", "calibrate", "stamp", "verify", "repair"]
+    order = ["start", "screen", "calibrate", "stamp", "verify", "repair", "robustness"]
     out = {f"{b}_s": clock[b] - clock[a] for a, b in zip(order, order[1:], strict=False)}
     # Process CPU seconds over wall seconds of STAMP: 2.0 keeps two cores busy.
     out["stamp_cpu_share"] = clock["stamp_cpu"] / max(out["stamp_s"], 1e-9)
@@ -650,6 +683,30 @@ def _repair(problem, cfg, theta, returned, outcome, evaluate, seed, say):
         repaired[failed[fix.repaired]] = True
         outcome = evaluate(theta)
     return theta, repaired, outcome
+
+
+def _robustness(problem, cfg, theta, verified, plan, seed, say) -> dict | None:
+    """Every verified plan's robustness score (`plans.robustness`), or None when off.
+
+    Returns:
+      {"samples", "seed", "seconds", "rollouts", "uncertain", "declared", "success",
+      "same_plan", "cost_median", "cost_std"}: the last four (n,) arrays, NaN
+      where a particle is not a verified plan.
+    """
+    if not cfg.robustness_samples:
+        return None
+    idx = np.flatnonzero(verified)
+    say(f"scoring {len(idx)} verified plans under uncertain physics "
+        f"({cfg.robustness_samples} perturbed MuJoCo C replays each)")
+    rob = plans_mod.robustness(problem, theta[idx], plan[idx], samples=cfg.robustness_samples,
+                               seed=seed)
+    out = {"samples": rob.samples, "seed": rob.seed, "seconds": rob.seconds,
+           "rollouts": rob.rollouts, "uncertain": rob.uncertain, "declared": rob.declared}
+    for name in ("success", "same_plan", "cost_median", "cost_std"):
+        full = np.full(len(theta), np.nan)
+        full[idx] = getattr(rob, name)
+        out[name] = full
+    return out
 
 
 def _plan_counts(decoded: plans_mod.Decoded) -> dict[str, int]:

@@ -183,6 +183,7 @@ def replay(
     horizon: int | None = None,
     fields: Sequence[str] = ("qpos", "qvel"),
     solver: str = "scene",
+    models: Sequence[mujoco.MjModel] | None = None,
 ) -> dict[str, np.ndarray]:
     """Replays initial states and controls in MuJoCo C (float64), for verification.
 
@@ -196,6 +197,8 @@ def replay(
       solver: "scene" steps `scene.m`, the scene's own solver settings (how a
         plan is verified); "grad" steps `scene.m_grad`, the MuJoCo C twin of the
         MJX model (how MJX is tested).
+      models: n models of the same size signature, one per state (perturbed
+        copies of the scene's, `scenes.uncertainty.sample`), instead of one.
 
     Returns:
       {field: (n, T, ...) float64 array}, states after steps 1..T.
@@ -218,6 +221,8 @@ def replay(
         ctrl = np.zeros((n, int(horizon), m.nu))
     ctrl = np.asarray(ctrl, np.float64)
     T = ctrl.shape[1]
+    if models is not None and len(models) != n:
+        raise MjstampError(f"replay got {len(models)} models for {n} states; valid: one each")
 
     d = mujoco.MjData(m)
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -228,7 +233,8 @@ def replay(
         mujoco.mj_getState(m, d, state0[i], spec)
     nthread = max(1, min(n, len(_affinity())))
     datas = [mujoco.MjData(m) for _ in range(nthread)]
-    state, _ = mujoco.rollout.rollout(m, datas, state0, ctrl, nstep=T)
+    state, _ = mujoco.rollout.rollout(m if models is None else list(models), datas, state0,
+                                      ctrl, nstep=T)
 
     out: dict[str, np.ndarray] = {}
     # FULLPHYSICS state: time, qpos, qvel, act, history, warmstart, ... in that order.

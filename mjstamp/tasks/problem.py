@@ -121,6 +121,9 @@ class Problem:
       fingerprint: a hash of the whole declaration (`Task.fingerprint`).
       extras: objects the task's code built (e.g. pushing's skill bank).
       bound_stiffness: weight of the soft box bounds per unit of box width.
+      uncertain: the physics plans should survive (`Task.uncertain`), resolved;
+        the defaults (`scenes.uncertainty.defaults`) when the task declared none.
+      uncertain_declared: whether the task declared it.
     """
 
     name: str
@@ -142,6 +145,8 @@ class Problem:
     bound_stiffness: float
     distance_fns: Mapping[tuple[int, int], Callable]
     declaration: Mapping[str, Any]
+    uncertain: tuple = ()
+    uncertain_declared: bool = False
 
     # Layout of θ ---------------------------------------------------------------
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from mjstamp import svgd
 from mjstamp.errors import MjstampError
+from mjstamp.scenes import uncertainty
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks import fingerprint as fp
 from mjstamp.tasks.declaration import (
@@ -108,6 +109,7 @@ class Task:
         self.kernel_override = None
         self.bound_stiffness = 100.0
         self.display_hints: dict[str, list] = {"trace": [], "force": []}
+        self.uncertainties: tuple[uncertainty.Uncertain, ...] = ()
         self._distance_fns: dict[tuple[int, int], Callable] = {}
         self._built: tuple[str, Problem] | None = None
 
@@ -340,6 +342,46 @@ class Task:
         """
         self.success_fn = fn
 
+    def uncertain(
+        self,
+        kind: str | None = None,
+        names: Sequence[str | int] | str | None = None,
+        *,
+        spread: float | None = None,
+        distribution: str | None = None,
+    ) -> None:
+        """Declares physics the plans should survive; scored on every verified plan.
+
+        `task.uncertain()` declares the defaults: ±20% friction on every geom,
+        ±10% mass on every body, 5 mm initial position noise on every body
+        with a free or slide joint. With a kind, it declares that one (kinds
+        and what they scale: `mjstamp.scenes.uncertainty.KINDS`); a later
+        declaration replaces what an earlier one said of the same elements. A
+        task that declares nothing is scored under the defaults.
+
+        Args:
+          kind: "friction", "mass", "damping", "solref", "gain" or "position";
+            None: the defaults above.
+          names: MJCF names (or ids) of the geoms, bodies, joints or actuators;
+            None: every one the kind applies to.
+          spread: a share for relative kinds (0.2: ×(1 ± 0.2) uniform, or the
+            standard deviation of a normal factor), metres for "position";
+            None: the kind's default (`uncertainty.DEFAULT_SPREAD`).
+          distribution: "uniform" or "normal"; None: normal for "position",
+            uniform otherwise.
+        """
+        if kind is None:
+            if names is not None or spread is not None or distribution is not None:
+                raise MjstampError(f"task {self.name!r}: uncertain() without a kind declares "
+                                   "the defaults and takes nothing else; valid kinds: "
+                                   + ", ".join(uncertainty.KINDS))
+            for u in uncertainty.defaults(self.scene, self.name):
+                self.uncertainties = uncertainty.merge(self.uncertainties, u)
+            return
+        u = uncertainty.resolve(self.scene, self.name, kind, names, spread=spread,
+                                distribution=distribution)
+        self.uncertainties = uncertainty.merge(self.uncertainties, u)
+
     def display(
         self, *, trace: Sequence[str] = (), force: Sequence[tuple[str, str]] = ()
     ) -> None:
@@ -428,6 +470,9 @@ class Task:
             "kernel": [self.kernel_weights, fp.of(self.kernel_override)],
             "bounds": self.bound_stiffness, "display": self.display_hints,
             "settings": fp.of(self.settings),
+            # N.B. only when declared: tasks without it keep the keys they had.
+            **({"uncertain": [u.describe() for u in self.uncertainties]}
+               if self.uncertainties else {}),
         }, sort_keys=True, default=str).encode())
         return h.hexdigest()[:32]
 
@@ -450,6 +495,8 @@ class Task:
             settings=dict(self.settings), description=self.description, fingerprint=key,
             extras=dict(self.extras), bound_stiffness=self.bound_stiffness,
             distance_fns=dict(self._distance_fns), declaration=self.describe(),
+            uncertain=self.uncertainties or uncertainty.defaults(self.scene, self.name),
+            uncertain_declared=bool(self.uncertainties),
         )
         override = self.kernel_override
         if override is None:
@@ -479,6 +526,7 @@ class Task:
             "costs": {t.name: t.weight for t in self.costs},
             "priors": {t.name: t.weight for t in self.priors},
             "display": self.display_hints,
+            "uncertain": [u.describe() for u in self.uncertainties],
         }
 
 
