@@ -47,8 +47,9 @@ def stable_plans(out: Path) -> dict:
     # solve on a machine calibrates, the ones after it read the cache.
     for key in ("us_per_particle_step", "seconds", "cached"):
         data["fidelity"].pop(key, None)
-    if data.get("screen"):
-        data["screen"].pop("seconds", None)
+    for section in ("screen", "robustness"):
+        if data.get(section):
+            data[section].pop("seconds", None)
     return data
 
 
