@@ -312,6 +312,12 @@ def _cmd_solve(args) -> int:
         if args.particles < 2:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
         overrides["particles"] = args.particles
+    if args.robust is not None:
+        overrides["robust"] = args.robust
+    if args.robust_cvar is not None:
+        if not args.robust and not overrides.get("robust"):
+            raise MjstampError(f"--robust-cvar={args.robust_cvar} needs --robust")
+        overrides["robust_cvar"] = args.robust_cvar
     if args.devices is not None:
         import jax
 
@@ -569,6 +575,13 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("--coordinator-timeout", type=_seconds("coordinator timeout"),
                        default=60.0, metavar="S",
                        help="seconds to wait for the coordinator (default 60)")
+    solve.add_argument("--robust", type=_count(0, "--robust"), nargs="?", const=8, default=None,
+                       metavar="K", help="plan for the task's uncertain physics: roll every "
+                       "particle out in K draws of it (default 8; about K times the work) "
+                       "and minimise the expected cost")
+    solve.add_argument("--robust-cvar", type=float, metavar="A", default=None,
+                       help="with --robust, minimise the mean cost of the worst share A of "
+                       "the draws (CVaR, 0 < A <= 1) instead of the mean of all")
     solve.add_argument("--no-coverage", action="store_true",
                        help="skip the ground-truth sweep behind the coverage figure")
     solve.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -93,6 +93,14 @@ class SolveConfig:
         the task's uncertain physics (`Task.uncertain`, the defaults when it
         declared none), for its robustness score (`plans.robustness`); 0: no
         score. The same draws for every plan, seeded by the solve's seed.
+      robust: plan for uncertain physics: every particle is rolled out in K =
+        `robust` draws of the task's uncertainty (`Problem.with_robust`; the
+        same draws throughout the solve, seeded by its seed and apart from the
+        score's), and STAMP minimises the expected cost over them (or its CVaR,
+        `robust_cvar`); each iteration costs about K times as much. 0: plan for
+        the nominal model. `mjstamp solve --robust` sets 8.
+      robust_cvar: with `robust`, the share of the worst draws whose mean cost
+        is minimised (CVaR at that level), in (0, 1]; 1: the expected cost.
       devices: shard the particles' rollouts over this many devices
         (`mjstamp.parallel`): host devices on a CPU (`mjstamp.configure(devices=N)`
         first), local GPUs on a GPU machine; None: every device JAX sees. The
@@ -125,13 +133,15 @@ class SolveConfig:
     nonfinite_redraw: int = 3
     backtrack: bool = True
     robustness_samples: int = 32
+    robust: int = 0
+    robust_cvar: float = 1.0
     devices: int | None = None
 
     def __post_init__(self):
         ints = {"particles": 2, "svgd_max_iters": 0, "sgd_max_iters": 0, "min_iters": 0,
                 "window": 1, "max_solver_iterations": 1, "repair_rounds": 0,
                 "repair_samples": 1, "screen": 1, "rescue_window": 0,
-                "nonfinite_redraw": 0, "robustness_samples": 0, "devices": 1}
+                "nonfinite_redraw": 0, "robustness_samples": 0, "robust": 0, "devices": 1}
         for name, low in ints.items():
             value = getattr(self, name)
             if value is None and name in ("max_solver_iterations", "devices"):
@@ -161,6 +171,11 @@ class SolveConfig:
                 raise MjstampError(
                     f"solve setting {name}={getattr(self, name)!r} must be True or False"
                 )
+        cvar = self.robust_cvar
+        if (isinstance(cvar, bool) or not isinstance(cvar, numbers.Real)
+                or not 0 < cvar <= 1):
+            raise MjstampError(f"solve setting robust_cvar={cvar!r} must be a number in (0, 1]: "
+                               "the share of the worst draws averaged (1: the expected cost)")
         near = self.rescue_near
         if (isinstance(near, bool) or not isinstance(near, numbers.Real)
                 or not 0 <= near <= 1):

@@ -194,6 +194,8 @@ class SolveResult:
                 for r in self.rows
             ],
             "robustness": self._robustness_summary(),
+            "robust_planning": None if self.problem.robust is None
+            else self.problem.robust.describe(),
             "plans": self._plans(),
             "iteration_seconds": _iteration_seconds(self.diagnostics),
             "stamp": {
@@ -334,9 +336,12 @@ def problem_jit(problem: Problem):
     re-run of a script or notebook skips tracing, and any change traces anew.
     """
     grad = dataclasses.asdict(problem.scene.grad_options)
+    # N.B. robust planning's draws are constants of the trace: they are part of the key.
+    robust = "" if problem.robust is None else f" robust={problem.robust.key()}"
 
     def jit(fn, name: str, *example):
-        return cached_jit(fn, f"problem={problem.fingerprint} grad={grad} {name}", *example)
+        return cached_jit(fn, f"problem={problem.fingerprint} grad={grad}{robust} {name}",
+                          *example)
 
     return jit
 
@@ -583,6 +588,10 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     evaluate = _Evaluator(problem, theta0_np)
     if calibration is not None:
         report.update(_check_mjx(problem, evaluate, theta0_np, calibration, cfg, say))
+    if cfg.robust:
+        problem = problem.with_robust(cfg.robust, seed, cfg.robust_cvar)
+        say(f"robust planning: every particle in {cfg.robust} draws of the uncertain physics"
+            + ("" if cfg.robust_cvar == 1 else f", CVaR at {cfg.robust_cvar:g}"))
     clock["calibrate"] = time.perf_counter()
     cpu = time.process_time()
     with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():

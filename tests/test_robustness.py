@@ -54,3 +54,123 @@ def test_bad_declarations_give_one_line(tiny_task, args, kwargs, expect):
     with pytest.raises(MjstampError) as e:
         task.uncertain(*args, **kwargs)
     assert expect in str(e.value) and "\n" not in str(e.value)
+
+
+# Robust planning (part 3) ------------------------------------------------------------
+
+def _shots(task, n=3):
+    """Shots of 1 m/s fanned around the goal's direction, n of them."""
+    angles = np.deg2rad(135) + np.linspace(-0.2, 0.2, n)
+    return np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
+def test_mjx_rollouts_in_drawn_models_match_mujoco_c_in_the_same_models(tiny_task):
+    import jax.numpy as jnp
+
+    from mjstamp.scenes import uncertainty
+    from mjstamp.scenes.rollout import replay
+
+    task = tiny_task()
+    task.uncertain("friction", spread=0.5)
+    task.uncertain("mass", spread=0.3)
+    problem = task.build().with_robust(4, seed=1)
+    draws, scene, k = problem.robust, problem.scene, 4
+    assert {"geom_friction", "body_mass", "body_invweight0"} <= set(draws.fields)
+    theta = _shots(task)
+    n = len(theta)
+    qpos0, qvel0, ctrl = (np.repeat(np.asarray(x, np.float64), k, axis=0)
+                          for x in problem.inputs(jnp.asarray(theta, scene.dtype)))
+    model = {f: np.tile(v, (n,) + (1,) * (v.ndim - 1)) for f, v in draws.fields.items()}
+    rollout = scene.rollout_fn(problem.horizon, fields=("qpos",),
+                               model_fields=tuple(sorted(model)))
+    mjx_q = np.asarray(rollout(qpos0, qvel0, ctrl, model)["qpos"])
+    models = uncertainty.sample(scene.m_grad, problem.uncertain, k, 1,
+                                stream=uncertainty.PLAN_STREAM).models
+    drawn = replay(scene, qpos0, qvel0, ctrl, solver="grad", models=models * n)["qpos"]
+    nominal = replay(scene, qpos0, qvel0, ctrl, solver="grad")["qpos"]
+    effect = np.abs(nominal - drawn).max(axis=(1, 2))
+    error = np.abs(mjx_q - drawn).max(axis=(1, 2))
+    assert effect.min() > 1e-3, effect  # the draws change the motion...
+    assert (error < 0.05 * effect).all(), (error, effect)  # ...and MJX follows them
+
+
+def test_robust_log_density_is_the_mean_cost_over_draws_and_cvar_the_worst(tiny_task):
+    import jax
+    import jax.numpy as jnp
+
+    from mjstamp.scenes import uncertainty
+    from mjstamp.scenes.rollout import replay
+
+    task = tiny_task()
+    task.uncertain("friction", spread=0.5)
+    task.uncertain("position", ["puck"], spread=0.03)
+    problem, k = task.build(), 4
+    theta = jnp.asarray(_shots(task), problem.scene.dtype)
+    mean = problem.with_robust(k, seed=2)
+    worst = problem.with_robust(k, seed=2, cvar=1 / k)
+    # By hand: each shot replayed in MuJoCo C in each of the same K drawn models.
+    draws = uncertainty.sample(problem.scene.m_grad, problem.uncertain, k, 2,
+                               stream=uncertainty.PLAN_STREAM)
+    th = np.repeat(np.asarray(theta, np.float64), k, axis=0)
+    qpos0, qvel0, ctrl = problem.inputs(th, xp=np)
+    qpos0 = qpos0 + np.tile(draws.qpos_noise, (len(theta), 1))
+    states = replay(problem.scene, qpos0, qvel0, ctrl, solver="grad",
+                    models=draws.models * len(theta))
+    r = plans.Replay(problem, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
+    c = plans.cost_c(problem, r, th)
+    c = c.reshape(len(theta), k)
+    assert np.ptp(c, axis=1).min() > 0.05  # the draws matter to the cost
+    np.testing.assert_allclose(-np.asarray(mean.logdensity(theta)[0]), c.mean(axis=1),
+                               rtol=0.02)
+    np.testing.assert_allclose(-np.asarray(worst.logdensity(theta)[0]), c.max(axis=1),
+                               rtol=0.02)
+    # No uncertainty: K copies of the nominal model, the nominal log density.
+    still = tiny_task()
+    still.uncertain("friction", spread=0.0)
+    nominal = still.build()
+    np.testing.assert_allclose(nominal.with_robust(k, seed=2).logdensity(theta)[0],
+                               nominal.logdensity(theta)[0], rtol=1e-5)
+    grad = jax.grad(lambda t: mean.logdensity(t)[0].sum())(theta)
+    assert np.isfinite(np.asarray(grad)).all() and np.abs(np.asarray(grad)).max() > 0
+
+
+def test_a_robust_solve_records_its_draws_and_keys_its_traces_by_them(tiny_task, monkeypatch):
+    from mjstamp import solve as solve_mod
+    from mjstamp.solve import problem_jit, solve
+
+    config = {"particles": 8, "svgd_max_iters": 4, "sgd_max_iters": 4, "min_iters": 100,
+              "robust": 2, "robustness_samples": 4}
+    result = solve(tiny_task(), config, seed=0, progress=False)
+    summary = result.summary()
+    assert summary["robust_planning"]["samples"] == 2
+    assert "geom_friction" in summary["robust_planning"]["fields"]
+    assert summary["config"]["solve"]["robust"] == 2
+    one, two = result.problem, result.problem.with_robust(2, seed=1)
+    assert one.robust.key() != two.robust.key()
+    assert one.robust.key() == result.problem.with_robust(2, seed=0).robust.key()
+    keys = []
+    monkeypatch.setattr(solve_mod, "cached_jit", lambda fn, key, *example: keys.append(key))
+    for p in (one, two, one.with_robust(0, seed=0)):
+        problem_jit(p)(lambda t: t, "probe", np.zeros(2))
+    assert len(set(keys)) == 3  # the draws are constants of the trace: part of its key
+
+
+@pytest.mark.parametrize(("setting", "expect"), [
+    ({"robust": -1}, "robust=-1 must be an integer >= 0"),
+    ({"robust": 4, "robust_cvar": 0}, "robust_cvar=0 must be a number in (0, 1]"),
+    ({"robust": 4, "robust_cvar": 1.5}, "robust_cvar=1.5 must be a number in (0, 1]"),
+])
+def test_bad_robust_settings_give_one_line(setting, expect):
+    from mjstamp.config import SolveConfig
+
+    with pytest.raises(MjstampError) as e:
+        SolveConfig.from_dict(setting)
+    assert expect in str(e.value) and "\n" not in str(e.value)
+
+
+def test_robust_cvar_without_robust_is_one_line(capsys):
+    from mjstamp.cli import main
+
+    assert main(["solve", "billiards", "--robust-cvar", "0.5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["mjstamp: error: --robust-cvar=0.5 needs --robust"]

@@ -80,13 +80,17 @@ def build_rollout(
     *,
     fields: Sequence[str] = ("qpos", "qvel"),
     checkpoint: str | int | None = "auto",
+    model_fields: Sequence[str] = (),
 ) -> Callable[..., Trajectory]:
     """Builds a batched, differentiable MJX rollout of `scene` over `horizon` steps.
 
     The returned function is `rollout(qpos0, qvel0, ctrl=None) -> {field: array}`
     with `qpos0: (n, nq)`, `qvel0: (n, nv)`, `ctrl: (n, horizon, nu)` (may be
     omitted when the scene has no actuators) and every field of shape
-    `(n, horizon, ...)`, holding the state after steps 1..horizon. Poses
+    `(n, horizon, ...)`, holding the state after steps 1..horizon. With
+    `model_fields`, it is `rollout(qpos0, qvel0, ctrl, model)`: `model` maps
+    each of those `mjx.Model` fields to (n, ...) values, one model per row
+    (domain randomisation; `scenes.uncertainty.mjx_fields`). Poses
     (`xpos`, `geom_xpos`, ...) are those of that same state: MJX's step computes
     kinematics before integrating, so they are recomputed after it.
 
@@ -100,6 +104,7 @@ def build_rollout(
       checkpoint: `"auto"` rematerialises chunks of about sqrt(T) steps when
         T >= 64, so reverse-mode memory grows as sqrt(T) instead of T, for one
         extra forward pass; None stores every step; an int is the chunk length.
+      model_fields: names of `mjx.Model` fields given per row (see above).
 
     Returns:
       The rollout function.
@@ -109,7 +114,11 @@ def build_rollout(
         raise MjstampError(f"horizon={horizon} must be >= 1")
     fields = _check_fields(fields)
     chunk = _chunk_length(horizon, checkpoint)
+    model_fields = tuple(model_fields)
     m, mx, dtype = scene.m, scene.mx, scene.dtype
+    for f in model_fields:
+        if not hasattr(mx, f):
+            raise MjstampError(f"model field {f!r} is not a field of mjx.Model")
     nu = m.nu
     need_kinematics = any(f in POSE_FIELDS for f in fields)
     # N.B. built eagerly even when first asked for inside a trace (a task's log
@@ -119,14 +128,16 @@ def build_rollout(
 
     mode = scene.grad_options.gradient
 
-    def step(dx, u):
-        # N.B. read while tracing: how MJX's solver is differentiated (gradsafe).
-        with gradsafe.gradient_mode(mode):
-            dx = mjx.step(mx, dx.replace(ctrl=u))
-        src = mjx.kinematics(mx, dx) if need_kinematics else dx
-        return dx, {f: getattr(src, f) for f in fields}
+    def single(qpos0, qvel0, ctrl, model):
+        mxk = mx.replace(**model) if model else mx
 
-    def single(qpos0, qvel0, ctrl):
+        def step(dx, u):
+            # N.B. read while tracing: how MJX's solver is differentiated (gradsafe).
+            with gradsafe.gradient_mode(mode):
+                dx = mjx.step(mxk, dx.replace(ctrl=u))
+            src = mjx.kinematics(mxk, dx) if need_kinematics else dx
+            return dx, {f: getattr(src, f) for f in fields}
+
         dx = d0.replace(qpos=qpos0, qvel=qvel0)
         if chunk is None:
             return jax.lax.scan(step, dx, ctrl)[1]
@@ -141,13 +152,35 @@ def build_rollout(
 
     batched = jax.jit(jax.vmap(single))
 
-    def rollout(qpos0, qvel0, ctrl=None) -> Trajectory:
-        return batched(*_checked_inputs(scene, horizon, qpos0, qvel0, ctrl))
+    def rollout(qpos0, qvel0, ctrl=None, model=None) -> Trajectory:
+        qpos0, qvel0, ctrl = _checked_inputs(scene, horizon, qpos0, qvel0, ctrl)
+        return batched(qpos0, qvel0, ctrl, _checked_model(model_fields, model, qpos0.shape[0],
+                                                          mx, dtype))
 
     rollout.horizon = horizon
     rollout.fields = fields
     rollout.chunk = chunk
+    rollout.model_fields = model_fields
     return rollout
+
+
+def _checked_model(model_fields: tuple[str, ...], model, n: int, mx, dtype) -> dict:
+    """Per-row model fields as arrays of the scene's dtype, or a one-line error."""
+    if not model_fields:
+        if model:
+            raise MjstampError("this rollout takes no model fields; build it with model_fields=")
+        return {}
+    model = dict(model or {})
+    if set(model) != set(model_fields):
+        raise MjstampError(f"model fields {sorted(model)} given; valid: {sorted(model_fields)}")
+    out = {}
+    for f in model_fields:
+        x = jnp.asarray(model[f])
+        want = (n, *getattr(mx, f).shape)
+        if x.shape != want:
+            raise MjstampError(f"model field {f!r} has shape {x.shape}; valid: {want}")
+        out[f] = x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
+    return out
 
 
 def _checked_inputs(scene, horizon: int, qpos0, qvel0, ctrl):

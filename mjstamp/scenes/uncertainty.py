@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import math
 from collections.abc import Sequence
 
@@ -204,8 +205,13 @@ def _draw(rng: np.random.Generator, u: Uncertain, shape) -> np.ndarray:
     return eps if u.kind == "position" else np.maximum(1.0 + eps, 0.01)
 
 
+#: Random streams: the robustness score's draws, and robust planning's (other draws, so
+#: a robust solve is scored on models it did not optimise for).
+SCORE_STREAM, PLAN_STREAM = 0x0B05, 0x0B06
+
+
 def sample(m: mujoco.MjModel, uncertain: Sequence[Uncertain], samples: int,
-           seed: int) -> Perturbations:
+           seed: int, *, stream: int = SCORE_STREAM) -> Perturbations:
     """`samples` perturbed models and initial-position offsets, the same for every plan.
 
     The same draws for every plan (common random numbers) make plans' scores
@@ -216,11 +222,12 @@ def sample(m: mujoco.MjModel, uncertain: Sequence[Uncertain], samples: int,
       uncertain: resolved declarations.
       samples: M >= 1.
       seed: seeds the draws.
+      stream: `SCORE_STREAM` or `PLAN_STREAM`.
 
     Returns:
       `Perturbations`.
     """
-    rng = np.random.default_rng([seed, 0x0B05])
+    rng = np.random.default_rng([seed, stream])
     models = [copy.copy(m) for _ in range(samples)]
     noise = np.zeros((samples, m.nq))
     for u in uncertain:
@@ -261,3 +268,68 @@ def sample(m: mujoco.MjModel, uncertain: Sequence[Uncertain], samples: int,
 def is_zero(uncertain: Sequence[Uncertain]) -> bool:
     """Whether nothing is perturbed (no declaration, or every spread zero)."""
     return all(not u.ids or u.spread == 0 or math.isclose(u.spread, 0.0) for u in uncertain)
+
+
+#: MjModel fields a draw can change: directly, or through mj_setConst when masses change.
+MODEL_FIELDS = ("geom_friction", "geom_solref", "body_mass", "body_inertia", "body_subtreemass",
+                "body_invweight0", "dof_invweight0", "tendon_invweight0", "dof_damping",
+                "actuator_gainprm", "actuator_biasprm", "actuator_acc0", "dof_M0")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Batch:
+    """K draws of the uncertainty for robust planning: every particle is rolled out in each.
+
+    The same K draws for every particle and every iteration (common random
+    numbers), so the robust cost is a smooth function of θ.
+
+    Attributes:
+      samples: K.
+      cvar: the share of the worst draws whose mean cost is optimised (CVaR at
+        that level); 1.0: the expected cost.
+      seed: the solve's seed (`PLAN_STREAM`).
+      fields: `mjx.Model` fields that differ from the nominal model, (K, ...) each.
+      qpos_noise: (K, nq) added to every particle's initial positions.
+    """
+
+    samples: int
+    cvar: float
+    seed: int
+    fields: dict
+    qpos_noise: np.ndarray
+
+    def key(self) -> str:
+        """A digest of the draws (for trace-cache keys)."""
+        h = hashlib.sha256(f"{self.samples} {self.cvar!r} {self.seed}".encode())
+        for name in sorted(self.fields):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(self.fields[name], np.float64).tobytes())
+        h.update(np.ascontiguousarray(self.qpos_noise, np.float64).tobytes())
+        return h.hexdigest()[:16]
+
+    def worst(self) -> int:
+        """How many of the K draws the CVaR averages (at least one)."""
+        return max(1, math.ceil(self.cvar * self.samples - 1e-9))
+
+    def describe(self) -> dict:
+        """JSON-ready: samples, cvar, seed and the fields drawn."""
+        return {"samples": self.samples, "cvar": self.cvar, "seed": self.seed,
+                "fields": sorted(self.fields),
+                "position_noise": bool(np.any(self.qpos_noise))}
+
+
+def batch(m_grad: mujoco.MjModel, uncertain: Sequence[Uncertain], samples: int, seed: int,
+          cvar: float = 1.0) -> Batch:
+    """K draws on the gradient model (`Scene.m_grad`) for robust planning (`Batch`).
+
+    Fields derived from masses at compile time follow them (mj_setConst on the
+    gradient model), as in the perturbed MuJoCo C models the score replays.
+    """
+    p = sample(m_grad, uncertain, samples, seed, stream=PLAN_STREAM)
+    fields = {}
+    for name in MODEL_FIELDS:
+        nominal = np.asarray(getattr(m_grad, name))
+        drawn = np.stack([np.asarray(getattr(mk, name)) for mk in p.models])
+        if drawn.size and not np.array_equal(drawn, np.broadcast_to(nominal, drawn.shape)):
+            fields[name] = drawn
+    return Batch(samples, float(cvar), seed, fields, p.qpos_noise)

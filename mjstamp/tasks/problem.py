@@ -31,6 +31,7 @@ import numpy as np
 
 from mjstamp import relax, svgd
 from mjstamp.errors import MjstampError
+from mjstamp.scenes import uncertainty
 from mjstamp.scenes.rollout import set_columns
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable, distance_fn
@@ -124,6 +125,10 @@ class Problem:
       uncertain: the physics plans should survive (`Task.uncertain`), resolved;
         the defaults (`scenes.uncertainty.defaults`) when the task declared none.
       uncertain_declared: whether the task declared it.
+      robust: None (plan for the nominal model), or K draws of `uncertain`
+        (`scenes.uncertainty.Batch`): the log posterior is then minus the
+        expected cost (or its CVaR) over K perturbed MJX rollouts per particle
+        (`with_robust`).
     """
 
     name: str
@@ -147,6 +152,7 @@ class Problem:
     declaration: Mapping[str, Any]
     uncertain: tuple = ()
     uncertain_declared: bool = False
+    robust: Any = None
 
     # Layout of θ ---------------------------------------------------------------
 
@@ -199,6 +205,19 @@ class Problem:
                 f"(Scene.with_grad_options of {self.scene.name!r})"
             )
         return dataclasses.replace(self, scene=scene)
+
+    def with_robust(self, samples: int, seed: int, cvar: float = 1.0) -> Problem:
+        """The problem planned for K = `samples` draws of its uncertain physics (0: nominal).
+
+        The draws are made on the current gradient model, so call it after
+        `on_scene`. MJX rollouts take the drawn friction, masses (with the
+        quantities mj_setConst derives from them), damping, contact time
+        constants and gains per row, and the initial-position noise.
+        """
+        if not samples:
+            return dataclasses.replace(self, robust=None)
+        draws = uncertainty.batch(self.scene.m_grad, self.uncertain, samples, seed, cvar)
+        return dataclasses.replace(self, robust=draws)
 
     def distance_fn(self, g1: int, g2: int) -> Callable:
         """Signed distance function of a geom pair (see scenes.distance), memoised."""
@@ -335,8 +354,33 @@ class Problem:
         return groups
 
     def _log_posterior(self, theta, hard: bool):
+        if self.robust is not None:
+            return self._robust_log_posterior(theta, hard)
         r, values = self.evaluate(theta, hard=hard)
         return -self.cost_total(values), self.features(r)
+
+    def _robust_log_posterior(self, theta, hard: bool):
+        """Minus the expected cost (or CVaR) over the K draws of `robust`, and ψ averaged."""
+        draws = self.robust
+        n, k = theta.shape[0], draws.samples
+        rollout = self.scene.rollout_fn(self.horizon, fields=FIELDS,
+                                        model_fields=tuple(sorted(draws.fields)))
+        qpos0, qvel0, ctrl = self.inputs(theta, hard=hard)
+
+        def rows(x):
+            return jnp.repeat(x, k, axis=0)
+
+        noise = jnp.asarray(draws.qpos_noise, qpos0.dtype)
+        model = {f: jnp.tile(jnp.asarray(v), (n,) + (1,) * (v.ndim - 1))
+                 for f, v in draws.fields.items()}
+        traj = rollout(rows(qpos0) + jnp.tile(noise, (n, 1)), rows(qvel0), rows(ctrl), model)
+        r, values = self.score(traj, {name: rows(x) for name, x in self.unpack(theta).items()})
+        cost = self.cost_total(values).reshape(n, k)
+        worst = draws.worst()
+        if worst < k:
+            cost = jnp.sort(cost, axis=1)[:, k - worst:]
+        features = self.features(r).reshape(n, k, -1).mean(axis=1)
+        return -cost.mean(axis=1), features
 
     def logdensity(self, theta) -> tuple[jax.Array, jax.Array]:
         """The log posterior log ρ(θ | O = 1) (n,) = −C(θ) at Γ̃(θ), and ψ (n, f), from one rollout.
