@@ -86,7 +86,8 @@ def save_figures(
 
     Returns:
       Paths of the files written, in the order plans_histogram.png,
-      plans_topdown.png, loss.png, svgd_diagnostics.png[, landscape.png].
+      plans_topdown.png, loss.png, svgd_diagnostics.png[, robustness.png when
+      the solve scored its plans][, landscape.png].
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -96,6 +97,8 @@ def save_figures(
         ("loss.png", lambda: loss_figure(result)),
         ("svgd_diagnostics.png", lambda: diagnostics_figure(result)),
     ]
+    if getattr(result, "robustness", None) is not None:
+        figures.append(("robustness.png", lambda: robustness_figure(result)))
     if landscape and result.task.dim == 2:
         figures.append(
             ("landscape.png",
@@ -195,6 +198,51 @@ def histogram_figure(result) -> Figure:
     ax.grid(axis="y", alpha=0.3)
     ax.set_axisbelow(True)
     ax.legend(loc="upper right")
+    return fig
+
+
+# ----------------------------------------------------------------------------
+# robustness.png: success share under uncertain physics, per task plan.
+
+
+def robustness_figure(result) -> Figure:
+    """Each verified plan's robustness score, one row per task plan (best and median marked).
+
+    The score is the share of perturbed MuJoCo C replays in which the plan
+    still succeeds (`plans.robustness`).
+    """
+    rob = result.robustness
+    success = np.asarray(rob["success"], float)
+    plans = particle_plans(result)
+    colors = plan_colors(result)
+    rows = [p for p in colors if np.isfinite(success[plans == p]).any()]
+    fig = Figure(figsize=(7, 2.4 + 0.32 * max(len(rows), 1)), layout="constrained")
+    ax = fig.add_subplot()
+    robust = result.config.get("solve", {}).get("robust") or 0
+    how = f"robust planning, K = {robust}" if robust else "nominal planning"
+    ax.set_title(f"{result.task.name}: plans under uncertain physics ({how}; "
+                 f"{rob['samples']} perturbed replays each)")
+    ax.set_xlabel("robustness: share of perturbed replays that still succeed")
+    ax.set_xlim(-0.03, 1.03)
+    if not rows:
+        ax.text(0.5, 0.5, "no verified plan to score", ha="center", va="center",
+                transform=ax.transAxes)
+        ax.set_yticks([])
+        return fig
+    jitter = np.random.default_rng(0)
+    for k, p in enumerate(rows):
+        s = success[(plans == p) & np.isfinite(success)]
+        y = k + jitter.uniform(-0.18, 0.18, len(s))
+        ax.scatter(s, y, s=14, color=colors[p], edgecolor="black", linewidth=0.4, zorder=3)
+        ax.plot([np.median(s)] * 2, [k - 0.32, k + 0.32], color="black", linewidth=1.5,
+                zorder=4, label="median" if k == 0 else None)
+        ax.scatter([s.max()], [k], marker="D", s=36, facecolor="none", edgecolor="C3",
+                   linewidth=1.4, zorder=5, label="best" if k == 0 else None)
+    ax.set_yticks(range(len(rows)), [str(p) for p in rows])
+    ax.set_ylim(len(rows) - 0.5, -0.5)
+    ax.set_ylabel("task plan")
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
     return fig
 
 

@@ -52,7 +52,7 @@ def test_save_figures_writes_valid_non_blank_pngs(result, tmp_path):
     written = figures.save_figures(result, tmp_path, grid=12, progress=False)
     names = [p.name for p in written]
     assert names == ["plans_histogram.png", "plans_topdown.png", "loss.png",
-                     "svgd_diagnostics.png", "landscape.png"]
+                     "svgd_diagnostics.png", "robustness.png", "landscape.png"]
     for path in written:
         assert path.is_file()
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -63,6 +63,19 @@ def test_save_figures_writes_valid_non_blank_pngs(result, tmp_path):
         assert image[..., :3].std() > 0.05, path.name
     # Atomic writes leave no temporary siblings behind.
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names)
+
+
+@pytest.mark.slow
+def test_robustness_figure_has_a_row_per_scored_task_plan_with_its_median(result):
+    fig = figures.robustness_figure(result)
+    ax = _is_readable(fig)[0]
+    success = result.robustness["success"]
+    plans_of = figures.particle_plans(result)
+    scored = sorted({p for p, s in zip(plans_of, success, strict=True) if np.isfinite(s)})
+    assert scored and [t.get_text() for t in ax.get_yticklabels()] == scored
+    medians = [line.get_xdata()[0] for line in ax.get_lines()]
+    assert medians == pytest.approx(
+        [np.median(success[(plans_of == p) & np.isfinite(success)]) for p in scored])
 
 
 @pytest.mark.slow
