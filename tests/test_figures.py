@@ -214,7 +214,7 @@ def test_a_solve_with_nothing_returned_still_draws(result, tmp_path):
     fig = figures.landscape_figure(empty, grid=4, progress=False)
     legend = [t.get_text() for t in fig.legends[0].get_texts()]
     assert legend == [f"not returned / failed ({n})"]
-    assert len(figures.save_figures(empty, tmp_path, grid=4, progress=False)) == 5
+    assert len(figures.save_figures(empty, tmp_path, grid=4, progress=False)) == 6
 
 
 @pytest.mark.slow
