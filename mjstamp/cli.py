@@ -425,7 +425,10 @@ def _cmd_view(args) -> int:
 
     if args.port is not None and not 0 < args.port < 65536:
         raise MjstampError(f"--port={args.port} must be in 1..65535")
-    choice = dict(plan=args.plan, task_plan=args.task_plan, task=args.task)
+    if args.perturbed < 0:
+        raise MjstampError(f"--perturbed={args.perturbed} must be >= 0 (replays per plan)")
+    choice = dict(plan=args.plan, task_plan=args.task_plan, task=args.task,
+                  perturbed=args.perturbed)
     if args.html:
         playback = viz.write_html(args.dir, args.html, **choice)
         print(f"wrote {playback.html} ({len(playback.segments)} plans)", file=sys.stderr)
@@ -601,6 +604,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="check that DIR holds plans of this task")
     view.add_argument("--html", metavar="OUT.html",
                       help="write a standalone page that plays offline, instead of a server")
+    view.add_argument("--perturbed", type=int, nargs="?", const=8, default=0, metavar="N",
+                      help="play N (default 8) of each plan's perturbed replays (the draws "
+                      "of its robustness score) beside it, as translucent copies")
     view.add_argument("--port", type=int, default=None,
                       help="web port of the meshcat server (default: first free from 7000)")
     view.add_argument("--no-browser", action="store_true",

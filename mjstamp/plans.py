@@ -32,11 +32,13 @@ from mjstamp.parallel import local_device
 from mjstamp.scenes import mjx, uncertainty
 from mjstamp.scenes.fidelity import describe
 from mjstamp.scenes.rollout import replay as replay_c
+from mjstamp.scenes.rollout import replay_model
 from mjstamp.tasks.declaration import Kind
 from mjstamp.tasks.problem import FIELDS, Decoded, Problem
 
 __all__ = ["Decoded", "Replay", "Robustness", "cost_c", "decode", "format_table", "group",
-           "load", "repair", "robustness", "save", "simulate_c", "simulate_mjx"]
+           "load", "perturbed_replays", "repair", "robustness", "save", "simulate_c",
+           "simulate_mjx"]
 
 # 2: scene.mjb, qpos0/qvel0/qvel/ctrl in trajectories.npz; 3: config split into task
 # and solve settings, fidelity, screen, repaired and source per plan.
@@ -388,6 +390,50 @@ def robustness(task, theta: np.ndarray, plan: np.ndarray | None = None, *, sampl
             out.cost_std[rows] = np.nanstd(finite, axis=1)
     out.seconds = time.perf_counter() - started
     return out
+
+
+def perturbed_replays(m: mujoco.MjModel, scored: dict | None, qpos0: np.ndarray,
+                      qvel0: np.ndarray, ctrl: np.ndarray | None, count: int, *,
+                      horizon: int, where: str) -> dict[str, np.ndarray]:
+    """A saved plan replayed in the first `count` perturbed models its score used.
+
+    The draws are those of `robustness` (the same seed, `samples` and
+    uncertainty, resolved again against the saved scene), so replay j is the
+    j-th of the M replays behind the plan's score.
+
+    Args:
+      m: the saved scene (scene.mjb, the scene's own solver settings).
+      scored: plans.json's "robustness" (None: the solve scored nothing).
+      qpos0: (nq,) the plan's initial positions.
+      qvel0: (nv,) its initial velocities.
+      ctrl: (T, nu) its controls (None or empty for a scene without actuators).
+      count: 1 <= count <= M replays.
+      horizon: T, the plan's steps.
+      where: the results directory (named in errors).
+
+    Returns:
+      {"qpos0": (count, nq) perturbed initial positions, "qpos", "qvel": (count, T, ...)}.
+
+    Raises:
+      MjstampError: nothing scored, or `count` out of 1..M (one line each).
+    """
+    if not scored:
+        raise MjstampError(f"{where} holds no robustness scores (solved with "
+                           "robustness_samples=0): there are no perturbed replays to play")
+    samples = int(scored["samples"])
+    if not 1 <= count <= samples:
+        raise MjstampError(f"perturbed replays={count} is not valid for {where}: its plans "
+                           f"were scored on {samples}; valid: 1..{samples}")
+    uncertain = uncertainty.from_describe(m, scored["uncertain"], f"{where}/plans.json")
+    draws = uncertainty.sample(m, uncertain, samples, int(scored["seed"]))
+    qpos0 = np.asarray(qpos0, np.float64)[None] + draws.qpos_noise[:count]
+    qvel0 = np.repeat(np.asarray(qvel0, np.float64)[None], count, axis=0)
+    ctrl = (np.zeros((count, int(horizon), m.nu)) if ctrl is None or np.size(ctrl) == 0
+            else np.repeat(np.asarray(ctrl, np.float64)[None], count, axis=0))
+    zero = uncertainty.is_zero(uncertain)
+    states = replay_model(m, qpos0, qvel0, ctrl, fields=("qpos", "qvel"),
+                          models=None if zero else draws.models[:count])
+    return {"qpos0": qpos0, **states}
 
 
 def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:

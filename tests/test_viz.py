@@ -424,6 +424,79 @@ def test_timeline_replays_saved_states_and_draws_force_and_paths(toy_results):
     np.testing.assert_allclose(pts[-1], res.trajectories["xpos"][1, -1, pusher], atol=1e-6)
 
 
+@pytest.fixture(scope="module")
+def scored_results(toy_results, tmp_path_factory):
+    """The toy results as a solve that scored its plans' robustness writes them."""
+    out = tmp_path_factory.mktemp("scored") / "res"
+    shutil.copytree(toy_results, out)
+    data = json.loads((out / "plans.json").read_text())
+    data["robustness"] = {
+        "samples": 16, "seed": 3, "seconds": 0.1, "rollouts": 64, "declared": True,
+        "scored_plans": 3, "median": 0.5,
+        "uncertain": [
+            {"kind": "mass", "names": ["pusher"], "spread": 0.3, "distribution": "uniform"},
+            {"kind": "position", "names": ["block"], "spread": 0.01, "distribution": "normal"},
+        ],
+    }
+    for e in data["plans"]:
+        if e["verified"]:
+            e["robustness"] = 0.5
+    (out / "plans.json").write_text(json.dumps(data))
+    return out
+
+
+def test_perturbed_replays_play_as_translucent_copies(scored_results, toy_results):
+    from mjstamp.scenes import uncertainty
+
+    res = viz.load_results(scored_results)
+    pb = viz.build_playback(res, viz.select_plans(res, plan=[0, 3]), perturbed=4)
+    m, dt = res.model, res.timestep
+    assert pb.perturbed == 4
+    assert "robustness 0.50, 4 perturbed replays" in pb.segments[0].label()
+    [anim] = [c for c in pb.commands if isinstance(c, SetAnimation)]
+    clips = {p.lower(): clip for p, clip in anim.animation.clips.items()}
+    objects = _by_path(pb.commands, SetObject)
+    ghost = "/meshcat/mjstamp/plans/{:02d}/ghosts/{:02d}/{}"
+    for k in (0, 1):
+        for j in range(4):
+            for body in ("pusher", "block"):
+                assert ghost.format(k, j, body) in clips
+            material = objects[ghost.format(k, j, "pusher") + "/pusher"][0].object.lower()
+            assert material["materials"][0]["opacity"] == pytest.approx(0.25)
+    assert ghost.format(0, 4, "pusher") not in clips
+    ends = {max(t.frames) for clip in clips.values() for t in clip.tracks.values()}
+    assert len(ends) == 1  # ghost clips last the whole timeline too
+    # Replay j is the score's draw j: its pusher mass m_j (F = 2 N, free flight
+    # before contact, semi-implicit Euler: x_t = x_0 + F / m_j dt^2 t (t + 1) / 2), and
+    # the block starts offset by draw j's position noise.
+    draws = uncertainty.sample(
+        m, uncertainty.from_describe(m, res.summary["robustness"]["uncertain"], "x"), 16, 3)
+    pusher, block = m.body("pusher").id, m.body("block").id
+    fps = clips[ghost.format(0, 0, "pusher")].fps
+    stride = round(1 / (fps * dt))
+    xs = []
+    for j in range(4):
+        pos = clips[ghost.format(0, j, "pusher")].tracks["position"]
+        t = stride * 5
+        x = pos.values[pos.frames.index(5)][0]
+        mass = draws.models[j].body_mass[pusher]
+        assert mass != pytest.approx(m.body_mass[pusher], rel=1e-3)
+        assert x == pytest.approx(2.0 / mass * dt**2 * t * (t + 1) / 2, rel=1e-9)
+        xs.append(x)
+        bpos = clips[ghost.format(0, j, "block")].tracks["position"]
+        adr = m.jnt_qposadr[m.body_jntadr[block]]
+        assert bpos.values[0][0] == pytest.approx(0.2 + draws.qpos_noise[j, adr], abs=1e-12)
+    assert np.ptp(xs) > 1e-4
+    note = viz.html_page(pb, title="t")
+    assert "translucent copies: 4 perturbed replays" in note
+    # Without scores, or more replays than were scored: one line each.
+    plain = viz.load_results(toy_results)
+    with pytest.raises(MjstampError, match="holds no robustness scores"):
+        viz.build_playback(plain, viz.select_plans(plain), perturbed=2)
+    with pytest.raises(MjstampError, match=r"scored on 16; valid: 1\.\.16"):
+        viz.build_playback(res, viz.select_plans(res), perturbed=17)
+
+
 # ----------------------------------------------------------------------------
 # Standalone HTML in headless Chromium.
 
@@ -569,6 +642,10 @@ def test_cli_view_bad_input(toy_results, tmp_path, capsys, busy_port):
     assert _one_error_line(capsys).endswith("valid: 0, 3, 5, 7")
     assert main(["view", str(old), "--port", "70000"]) == 2
     assert _one_error_line(capsys) == "--port=70000 must be in 1..65535"
+    assert main(["view", str(old), "--perturbed", "-1"]) == 2
+    assert _one_error_line(capsys) == "--perturbed=-1 must be >= 0 (replays per plan)"
+    assert main(["view", str(toy_results), "--perturbed", "--html", str(tmp_path / "x.html")]) == 2
+    assert "holds no robustness scores" in _one_error_line(capsys)
     # A port in use: the page is written next to the results instead, said in one line.
     res = tmp_path / "res"
     shutil.copytree(toy_results, res)

@@ -236,10 +236,24 @@ def replay(
     Returns:
       {field: (n, T, ...) float64 array}, states after steps 1..T.
     """
-    fields = _check_fields(fields)
     if solver not in ("scene", "grad"):
         raise MjstampError(f"solver={solver!r} is not valid; valid: scene, grad")
     m = scene.m if solver == "scene" else scene.m_grad
+    return replay_model(m, qpos0, qvel0, ctrl, horizon=horizon, fields=fields, models=models)
+
+
+def replay_model(
+    m: mujoco.MjModel,
+    qpos0,
+    qvel0,
+    ctrl=None,
+    *,
+    horizon: int | None = None,
+    fields: Sequence[str] = ("qpos", "qvel"),
+    models: Sequence[mujoco.MjModel] | None = None,
+) -> dict[str, np.ndarray]:
+    """`replay` on a bare MjModel (a results directory's scene.mjb), not a `Scene`."""
+    fields = _check_fields(fields)
     qpos0 = np.asarray(qpos0, np.float64)
     qvel0 = np.asarray(qvel0, np.float64)
     n = qpos0.shape[0]

@@ -184,6 +184,53 @@ def merge(earlier: Sequence[Uncertain], new: Uncertain) -> tuple[Uncertain, ...]
     return (*out, new)
 
 
+def from_describe(m: mujoco.MjModel, entries: Sequence[dict], where: str) -> tuple[Uncertain, ...]:
+    """The `Uncertain`s that `Uncertain.describe` wrote, resolved again against `m`.
+
+    For a results directory: its plans.json's `robustness.uncertain` against its
+    scene.mjb gives back the draws its scores were computed on (`sample`).
+
+    Args:
+      m: the model the declarations were resolved against.
+      entries: `Uncertain.describe()` dicts.
+      where: what holds them (named in errors), e.g. "'out/plans.json'".
+
+    Raises:
+      MjstampError: an entry of an unknown kind or distribution, without names
+        or spread, or naming an element `m` lacks (one line, what is valid).
+    """
+    out = []
+    for e in entries:
+        kind = e.get("kind") if isinstance(e, dict) else None
+        if kind not in KINDS:
+            raise MjstampError(f"{where}: uncertain entry {e!r} has no known kind; valid: "
+                               f"{valid_list(KINDS)}")
+        obj = KINDS[kind][0]
+        count = getattr(m, {"geom": "ngeom", "body": "nbody", "joint": "njnt",
+                            "actuator": "nu"}[obj])
+        try:
+            spread, names = float(e["spread"]), [str(n) for n in e["names"]]
+        except (KeyError, TypeError, ValueError):
+            raise MjstampError(f"{where}: uncertain {kind} entry {e!r} needs names (a list) "
+                               "and spread (a number)") from None
+        if e.get("distribution") not in DISTRIBUTIONS:
+            raise MjstampError(f"{where}: uncertain {kind} distribution "
+                               f"{e.get('distribution')!r} is not known; valid: "
+                               f"{valid_list(DISTRIBUTIONS)}")
+        ids = []
+        for n in names:
+            i = mujoco.mj_name2id(m, getattr(mujoco.mjtObj, f"mjOBJ_{obj.upper()}"), n)
+            if i < 0 and n.isdigit() and int(n) < count:
+                i = int(n)  # an unnamed element, written as its id
+            if i < 0:
+                raise MjstampError(f"{where}: uncertain {kind} names {obj} {n!r}, which the "
+                                   f"saved scene lacks; valid: "
+                                   f"{valid_list(_name(m, obj, j) for j in range(count))}")
+            ids.append(i)
+        out.append(Uncertain(kind, tuple(ids), tuple(names), spread, str(e["distribution"])))
+    return tuple(out)
+
+
 @dataclasses.dataclass
 class Perturbations:
     """M draws of the declared uncertainty.

@@ -5,8 +5,10 @@
     viz.write_html("results/billiards", "billiards.html")  # offline page
 
 What it is for: showing the plans of a results directory (what `mjstamp solve
---out` wrote) in 3-D, as `mjstamp view` does; it reads saved MuJoCo C states,
-it never simulates nor plans.
+--out` wrote) in 3-D, as `mjstamp view` does; it reads saved MuJoCo C states
+and never plans. The one simulation it shows, a plan's perturbed replays
+(`--perturbed`), comes from `plans.perturbed_replays`, the draws of the
+plan's robustness score.
 
 What it may import: mujoco, numpy, meshcat and its transport (zmq, umsgpack),
 the standard library, and of mjstamp only `geometry` (poses, colours and

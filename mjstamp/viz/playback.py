@@ -43,6 +43,7 @@ from meshcat.commands import SetAnimation, SetObject, SetTransform
 from meshcat.visualizer import ViewerWindow
 
 from mjstamp import geometry
+from mjstamp import plans as plans_io
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.fileio import write_atomic
 from mjstamp.viz import scene as scene_mod
@@ -55,6 +56,7 @@ FORCE_COLOR = 0xFF8C00  # orange: stands out on the grey and green tables of the
 ARROW_FRACTION = 0.2
 ARROW_CAP = 2.0
 SERVER_START_S = 30.0  # a cold Python start of tornado + zmq takes ~1 s; be patient on CI
+GHOST_OPACITY = 0.25  # perturbed replays: see-through copies of the moving bodies
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +70,8 @@ class Segment:
       cost: its MJX cost.
       start: time (s) its motion starts.
       end: time (s) its motion ends (it then holds its last state).
+      robustness: its robustness score (None: not scored).
+      perturbed: how many of its perturbed replays play alongside, as translucent copies.
     """
 
     particle: int
@@ -76,12 +80,16 @@ class Segment:
     cost: float
     start: float
     end: float
+    robustness: float | None = None
+    perturbed: int = 0
 
     def label(self) -> str:
-        """One line: particle, task plan, cost and time window."""
+        """One line: particle, task plan, cost, robustness and time window."""
         mark = "" if self.verified else " (failed)"
-        return (f"particle {self.particle}: {self.task_plan}{mark}, cost {self.cost:.3g}, "
-                f"{self.start:.1f}-{self.end:.1f} s")
+        score = "" if self.robustness is None else f", robustness {self.robustness:.2f}"
+        ghosts = f", {self.perturbed} perturbed replays" if self.perturbed else ""
+        return (f"particle {self.particle}: {self.task_plan}{mark}, cost {self.cost:.3g}"
+                f"{score}{ghosts}, {self.start:.1f}-{self.end:.1f} s")
 
 
 @dataclasses.dataclass
@@ -94,6 +102,7 @@ class Playback:
       force_scale: arrow length (m) per newton, or None without forces to draw. Arrows
         are capped at `ARROW_CAP` times a typical force's length.
       force_names: the drawn forces, e.g. "pusher on block".
+      perturbed: perturbed replays shown per plan (translucent copies; 0: none).
       url: address of the live viewer (None for HTML only).
       html: the HTML page written (None for live playback).
       visualizer: the connected `meshcat.Visualizer` (live only).
@@ -103,6 +112,7 @@ class Playback:
     segments: list[Segment]
     force_scale: float | None
     force_names: str = ""
+    perturbed: int = 0
     url: str | None = None
     html: Path | None = None
     visualizer: meshcat.Visualizer | None = None
@@ -135,13 +145,18 @@ class ServerUnavailable(MjstampError):
 # Replaying saved states.
 
 
+def _states(T: int, stride: int) -> list[int]:
+    """Every `stride`-th of the states 0..T (the initial one, then after each step), and T."""
+    idx = list(range(0, T + 1, stride))
+    if idx[-1] != T:
+        idx.append(T)  # always show where the plan ends
+    return idx
+
+
 def _frames(m: mujoco.MjModel, results: Results, row: int, stride: int, pairs) -> geometry.Frames:
     """Poses and contact forces of one plan at every `stride`-th saved state and the last."""
     tr = results.trajectories
-    last = len(tr["qpos"][row])  # states 0..T: the initial one, then after each step
-    idx = list(range(0, last + 1, stride))
-    if idx[-1] != last:
-        idx.append(last)  # always show where the plan ends
+    idx = _states(len(tr["qpos"][row]), stride)
     return geometry.replay_frames(
         m, tr["qpos0"][row], tr["qpos"][row],
         qvel0=tr["qvel0"][row] if "qvel0" in tr else None,
@@ -149,6 +164,20 @@ def _frames(m: mujoco.MjModel, results: Results, row: int, stride: int, pairs) -
         ctrl=tr["ctrl"][row] if "ctrl" in tr else None,
         pairs=pairs, states=idx,
     )
+
+
+def _ghost_frames(m: mujoco.MjModel, results: Results, row: int, stride: int,
+                  count: int) -> list[geometry.Frames]:
+    """Poses of one plan in the first `count` perturbed replays of its robustness score."""
+    tr = results.trajectories
+    T = len(tr["qpos"][row])
+    reps = plans_io.perturbed_replays(
+        m, results.summary.get("robustness"), tr["qpos0"][row], tr["qvel0"][row],
+        tr["ctrl"][row] if "ctrl" in tr else None, count, horizon=T,
+        where=repr(str(results.path)))
+    idx = _states(T, stride)
+    return [geometry.replay_frames(m, reps["qpos0"][j], reps["qpos"][j], states=idx)
+            for j in range(count)]
 
 
 # ----------------------------------------------------------------------------
@@ -239,6 +268,7 @@ def build_playback(
     hold: float = 0.5,
     max_fps: float = 50.0,
     loop: bool = True,
+    perturbed: int = 0,
 ) -> Playback:
     """The meshcat commands that draw the scene and play `entries` one after another.
 
@@ -248,18 +278,30 @@ def build_playback(
       hold: seconds each plan rests on its final state before the next starts.
       max_fps: at most this many keyframes per second (states are subsampled).
       loop: repeat the whole timeline forever (else play it once).
+      perturbed: with each plan, play this many of the perturbed replays behind
+        its robustness score (`plans.perturbed_replays`) as translucent copies of
+        the moving bodies; 0: none.
 
     Returns:
       A `Playback` holding the commands and the timeline (not shown anywhere yet).
+
+    Raises:
+      MjstampError: `perturbed` asked of a directory without robustness scores,
+        or more than its plans were scored on.
     """
+    perturbed = int(perturbed)
+    if perturbed < 0:
+        raise MjstampError(f"perturbed replays={perturbed} must be >= 0")
     m = results.model
     dt = results.timestep
     stride = max(1, math.ceil(1.0 / (dt * max_fps)))
     fps = 1.0 / (dt * stride)
     pairs = _resolve_pairs(m, results)
     traces = _resolve_traces(m, results)
-    replays = [_frames(m, results, results.row(int(e["particle"])), stride, pairs)
-               for e in entries]
+    rows = [results.row(int(e["particle"])) for e in entries]
+    replays = [_frames(m, results, r, stride, pairs) for r in rows]
+    ghosts = [_ghost_frames(m, results, r, stride, perturbed) if perturbed else []
+              for r in rows]
     first = replays[0].pose(0)
     commands = scene_mod.scene_commands(m, pose=first)
     _, radius = scene_mod.scene_bounds(m, first)
@@ -272,18 +314,52 @@ def build_playback(
     timeline = _Timeline(m, pairs, len(entries), force_scale, ARROW_CAP * ARROW_FRACTION * radius)
     segments = []
     for k, (entry, frames) in enumerate(zip(entries, replays, strict=True)):
-        start, end = timeline.add(k, frames, hold_frames=max(1, round(hold * fps)))
+        start, end = timeline.add(k, frames, hold_frames=max(1, round(hold * fps)),
+                                  ghosts=ghosts[k])
         commands += _trace_lines(m, k, frames, traces)
+        commands += _ghost_objects(m, k, len(ghosts[k]))
+        score = entry.get("robustness")
         segments.append(Segment(
             particle=int(entry["particle"]), task_plan=str(entry["task_plan"]),
             verified=bool(entry["verified"]), cost=float(entry["cost"]),
             start=start / fps, end=end / fps,
+            robustness=None if score is None else float(score), perturbed=len(ghosts[k]),
         ))
     commands += _arrow_objects(m, pairs)
     commands += timeline.commands(fps, loop=loop)
     names = ", ".join(f"{m.geom(a).name} on {m.geom(b).name}" for a, b in pairs)
     return Playback(commands=commands, segments=segments, force_scale=force_scale,
-                    force_names=names)
+                    force_names=names, perturbed=perturbed)
+
+
+def _moving(m: mujoco.MjModel) -> list[int]:
+    """Bodies that can move (not welded to the world)."""
+    return [b for b in range(1, m.nbody) if m.body_weldid[b] != 0]
+
+
+def _ghost_path(m: mujoco.MjModel, k: int, j: int, b: int):
+    """Body b's copy in plan k's perturbed replay j (shown with plan k)."""
+    return scene_mod.path_of("plans", f"{k:02d}", "ghosts", f"{j:02d}",
+                             scene_mod.body_name(m, b))
+
+
+def _ghost_objects(m: mujoco.MjModel, k: int, count: int) -> list:
+    """See-through copies of the moving bodies' shown geoms, one set per perturbed replay."""
+    if not count:
+        return []
+    moving = set(_moving(m))
+    objs = [o for o in scene_mod.scene_objects(m)
+            if o.kind == "geom" and o.visible and o.body in moving]
+    out = []
+    for j in range(count):
+        for o in objs:
+            path = _ghost_path(m, k, j, o.body).append(o.path[-1])
+            material = mg.MeshPhongMaterial(color=scene_mod.hex_color(o.rgba),
+                                            opacity=GHOST_OPACITY * float(o.rgba[3]),
+                                            depthWrite=False)
+            out.append(SetObject(mg.Mesh(o.geometry, material), path=path))
+            out.append(SetTransform(o.transform, path))
+    return out
 
 
 def _force_path(m: mujoco.MjModel, pair: tuple[int, int]):
@@ -300,21 +376,28 @@ class _Timeline:
         self.pairs = pairs
         self.force_scale = force_scale
         self.max_length = max_length
-        self.bodies = {b: _Tracks() for b in range(1, m.nbody) if m.body_weldid[b] != 0}
+        self.bodies = {b: _Tracks() for b in _moving(m)}
+        self.ghosts: dict[tuple[int, int, int], _Tracks] = {}  # (plan, replay, body)
         self.arrows = {k: _Tracks() for k in range(len(pairs))}
         self.shown = {k: _Tracks() for k in range(plans)}
         self.plans = plans
         self.next = 0  # first frame of the next plan
 
-    def add(self, k: int, frames: geometry.Frames, *, hold_frames: int) -> tuple[int, int]:
-        """Keys plan k's frames, then holds its last one; (first, last moving frame)."""
+    def add(self, k: int, frames: geometry.Frames, *, hold_frames: int,
+            ghosts: list[geometry.Frames] = ()) -> tuple[int, int]:
+        """Keys plan k's frames (and its perturbed replays', `ghosts`), then holds the last.
+
+        Returns (first, last moving frame).
+        """
         start, n = self.next, len(frames.states)
         keys = list(range(start, start + n)) + [start + n - 1 + hold_frames]
         states = list(range(n)) + [n - 1]
         for b, tracks in self.bodies.items():
-            for f, s in zip(keys, states, strict=True):
-                tracks.key(f, "position", "vector3", [float(x) for x in frames.xpos[s, b]])
-                tracks.key(f, "quaternion", "quaternion", _js_quat(frames.xquat[s, b]))
+            self._key_body(tracks, keys, states, frames, b)
+        for j, ghost in enumerate(ghosts):
+            for b in self.bodies:
+                tracks = self.ghosts.setdefault((k, j, b), _Tracks())
+                self._key_body(tracks, keys, states, ghost, b)
         for p, tracks in self.arrows.items():
             self._key_arrow(tracks, keys, frames.force[states, p], frames.point[states, p])
         if self.plans > 1:
@@ -322,6 +405,12 @@ class _Timeline:
                 tracks.key(start, "visible", "bool", j == k)
         self.next = keys[-1] + 1
         return start, start + n - 1
+
+    @staticmethod
+    def _key_body(tracks: _Tracks, keys, states, frames: geometry.Frames, b: int) -> None:
+        for f, s in zip(keys, states, strict=True):
+            tracks.key(f, "position", "vector3", [float(x) for x in frames.xpos[s, b]])
+            tracks.key(f, "quaternion", "quaternion", _js_quat(frames.xquat[s, b]))
 
     def _key_arrow(self, tracks: _Tracks, keys, force: np.ndarray, point: np.ndarray) -> None:
         last_pos, last_q = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]
@@ -345,6 +434,8 @@ class _Timeline:
         animation = Animation(default_framerate=fps)
         for b, tracks in self.bodies.items():
             animation.clips[scene_mod.body_path(self.m, b)] = tracks.clip(fps, last)
+        for (k, j, b), tracks in self.ghosts.items():
+            animation.clips[_ghost_path(self.m, k, j, b)] = tracks.clip(fps, last)
         for p, tracks in self.arrows.items():
             animation.clips[_force_path(self.m, self.pairs[p])] = tracks.clip(fps, last)
         for k, tracks in self.shown.items():
@@ -479,6 +570,9 @@ def html_page(playback: Playback, *, title: str) -> str:
     if playback.force_scale is not None:
         note = (f"<div>orange arrows: contact forces ({html_lib.escape(playback.force_names)}), "
                 f"1 N = {100 * playback.force_scale:.3g} cm</div>")
+    if playback.perturbed:
+        note += (f"<div>translucent copies: {playback.perturbed} perturbed replays of each "
+                 "plan (draws of its robustness score)</div>")
     return _PAGE.format(
         title=html_lib.escape(title), heading=html_lib.escape(title), items=items,
         note=note, viewer_js=_viewer_js(), commands=encoded,
@@ -508,6 +602,7 @@ def write_html(
     task: str | None = None,
     loop: bool = True,
     hold: float = 0.5,
+    perturbed: int = 0,
 ) -> Playback:
     """Writes a standalone HTML page that plays the plans offline.
 
@@ -519,6 +614,8 @@ def write_html(
       task: if given, the task the directory must belong to.
       loop: repeat the timeline forever.
       hold: seconds each plan rests on its final state.
+      perturbed: play this many perturbed replays of each plan beside it
+        (translucent copies; see `build_playback`).
 
     Returns:
       The `Playback`, with `html` set to the page written.
@@ -529,7 +626,7 @@ def write_html(
         raise MjstampError(f"cannot write {str(target)!r}: directory "
                            f"{str(target.parent)!r} does not exist")
     playback = build_playback(res, select_plans(res, plan=plan, task_plan=task_plan),
-                              loop=loop, hold=hold)
+                              loop=loop, hold=hold, perturbed=perturbed)
     page = html_page(playback, title=_title(res)).encode("utf-8")
     try:
         write_atomic(target, lambda f: f.write(page))
@@ -619,6 +716,7 @@ def play(
     open_browser: bool = False,
     loop: bool = True,
     hold: float = 0.5,
+    perturbed: int = 0,
 ) -> Playback:
     """Plays the verified plans of a results directory in meshcat.
 
@@ -637,6 +735,8 @@ def play(
       open_browser: open the viewer in the default browser.
       loop: repeat the timeline forever.
       hold: seconds each plan rests on its final state.
+      perturbed: play this many perturbed replays of each plan beside it
+        (translucent copies; see `build_playback`).
 
     Returns:
       The `Playback` (`url` for live, `html` for a page).
@@ -647,11 +747,11 @@ def play(
         next to the results (plans.html) instead and `html` says where.
     """
     res = _open(results, task)
-    kwargs = dict(plan=plan, task_plan=task_plan, loop=loop, hold=hold)
+    kwargs = dict(plan=plan, task_plan=task_plan, loop=loop, hold=hold, perturbed=perturbed)
     if html is not None:
         return write_html(res, html, **kwargs)
     playback = build_playback(res, select_plans(res, plan=plan, task_plan=task_plan),
-                              loop=loop, hold=hold)
+                              loop=loop, hold=hold, perturbed=perturbed)
     try:
         proc, zmq_url, web_url = start_server(port)
     except ServerUnavailable as e:
