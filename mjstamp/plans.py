@@ -330,7 +330,8 @@ class Robustness:
 
 
 def robustness(task, theta: np.ndarray, plan: np.ndarray | None = None, *, samples: int = 32,
-               seed: int = 0, max_steps: int = 1 << 19) -> Robustness:
+               seed: int = 0, max_steps: int = 1 << 19,
+               stream: int = uncertainty.SCORE_STREAM) -> Robustness:
     """Replays plans under M perturbed models and initial states in MuJoCo C.
 
     Every plan meets the same M draws of the task's uncertainty (`Task.uncertain`,
@@ -346,6 +347,9 @@ def robustness(task, theta: np.ndarray, plan: np.ndarray | None = None, *, sampl
       samples: M >= 1 perturbed replays per plan.
       seed: seeds the draws (the same seed, the same scores).
       max_steps: rollout steps held in memory at once (chunks of plans).
+      stream: the draws' random stream; `uncertainty.PLAN_STREAM` with samples = K
+        replays a robust solve's own K planning draws (in MuJoCo C, the scene's
+        solver), to tell overfitting to them from not reaching them.
 
     Returns:
       A `Robustness`.
@@ -362,7 +366,7 @@ def robustness(task, theta: np.ndarray, plan: np.ndarray | None = None, *, sampl
                      [u.describe() for u in problem.uncertain], problem.uncertain_declared)
     if m == 0:
         return out
-    draws = uncertainty.sample(problem.scene.m, problem.uncertain, samples, seed)
+    draws = uncertainty.sample(problem.scene.m, problem.uncertain, samples, seed, stream=stream)
     zero = uncertainty.is_zero(problem.uncertain)
     per_chunk = max(1, max_steps // (samples * problem.horizon))
     for start in range(0, m, per_chunk):
