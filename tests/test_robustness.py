@@ -173,4 +173,13 @@ def test_robust_cvar_without_robust_is_one_line(capsys):
 
     assert main(["solve", "billiards", "--robust-cvar", "0.5"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["mjstamp: error: --robust-cvar=0.5 needs --robust"]
+    assert err == ["mjstamp: error: --robust-cvar=0.5 needs --robust K with K >= 1"]
+    assert main(["solve", "billiards", "--robust", "0", "--robust-cvar", "0.5"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "mjstamp: error: --robust-cvar=0.5 needs --robust K with K >= 1"]
+    for bad in ("0", "1.5", "nan"):
+        assert main(["solve", "billiards", "--robust", "--robust-cvar", bad]) == 2
+        assert capsys.readouterr().err.strip().splitlines() == [
+            f"mjstamp: error: --robust-cvar={float(bad)} must be in (0, 1]: the share of the "
+            "worst draws (1: the expected cost)"]
+

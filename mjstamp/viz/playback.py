@@ -172,7 +172,8 @@ def _ghost_frames(m: mujoco.MjModel, results: Results, row: int, stride: int,
     tr = results.trajectories
     T = len(tr["qpos"][row])
     reps = plans_io.perturbed_replays(
-        m, results.summary.get("robustness"), tr["qpos0"][row], tr["qvel0"][row],
+        m, results.summary.get("robustness"), tr["qpos0"][row],
+        tr["qvel0"][row] if "qvel0" in tr else np.zeros(m.nv),
         tr["ctrl"][row] if "ctrl" in tr else None, count, horizon=T,
         where=repr(str(results.path)))
     idx = _states(T, stride)
