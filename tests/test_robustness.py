@@ -182,4 +182,3 @@ def test_robust_cvar_without_robust_is_one_line(capsys):
         assert capsys.readouterr().err.strip().splitlines() == [
             f"mjstamp: error: --robust-cvar={float(bad)} must be in (0, 1]: the share of the "
             "worst draws (1: the expected cost)"]
-
