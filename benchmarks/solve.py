@@ -38,6 +38,7 @@ Usage: python benchmarks/solve.py [--json] [--particles N ...] [--devices K ...]
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import subprocess
@@ -45,17 +46,40 @@ import sys
 import tempfile
 import time
 
+VERBOSE = False  # --verbose: the solves' status lines go to this process's stderr
+
 
 def _run_solve(cache: str | None, extra: list[str], task: str = "billiards"):
     env = dict(os.environ)
     if cache is not None:
         env.update(JAX_COMPILATION_CACHE_DIR=os.path.join(cache, "jax"),
                    MJSTAMP_TRACE_CACHE=os.path.join(cache, "trace"))
-    cmd = [sys.executable, "-m", "mjstamp.cli", "solve", task, "--json", "--quiet", *extra]
+    cmd = [sys.executable, "-m", "mjstamp.cli", "solve", task, "--json",
+           *([] if VERBOSE else ["--quiet"]), *extra]
     t0 = time.perf_counter()
-    out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
+    out = subprocess.run(cmd, env=env, stdout=subprocess.PIPE,
+                         stderr=None if VERBOSE else subprocess.PIPE, text=True)
     wall = time.perf_counter() - t0
+    if out.returncode != 0:
+        sys.exit(f"benchmarks/solve.py: {' '.join(cmd[2:])} exited {out.returncode}:\n"
+                 f"{(out.stderr or '')[-3000:]}")
     return wall, json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@functools.cache
+def _device() -> dict:
+    """The device the solves run on, asked in a child process.
+
+    N.B. not in this one: JAX would hold the GPU (and its memory) while the
+    solves run in their own processes.
+    """
+    code = ("import jax; d = jax.devices()[0]; "
+            "print(d, '|', d.device_kind, '|', jax.device_count(), '|', jax.__version__)")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
+                         text=True).stdout.strip().splitlines()[-1]
+    device, kind, count, version = (x.strip() for x in out.split("|"))
+    return {"device": device, "device_kind": kind, "device_count": int(count),
+            "jax": version}
 
 
 def _rollout_seconds_per_iteration(particles: int) -> tuple[float, float]:
@@ -133,16 +157,23 @@ def _pushing(max_pushes: list[int], as_json: bool) -> dict:
     return {"rows": rows, **ratios}
 
 
-def _billiards_row(n: int | None, k: int) -> dict:
-    """Cold and warm default billiards solves with `n` particles over `k` devices."""
+def _billiards_row(n: int | None, k: int, profile: bool = True) -> dict:
+    """Cold and warm default billiards solves with `n` particles over `k` devices.
+
+    `profile=False` leaves out the in-process timing of one batched evaluation
+    (two more compiles: minutes on a GPU), and with it the rollout share.
+    """
     extra = ([] if n is None else ["--particles", str(n)]) + ["--devices", str(k)]
     with tempfile.TemporaryDirectory() as cache:
         cold_wall, cold = _run_solve(cache, extra)
         warm_wall, warm = _run_solve(cache, extra)
     particles = warm["particles"]
-    svgd_s, sgd_s = _rollout_seconds_per_iteration(particles)
     iters = warm["stamp"]
-    rollout_s = iters["svgd_iters"] * svgd_s + iters["sgd_iters"] * sgd_s
+    svgd_s = sgd_s = share = None
+    if profile:
+        svgd_s, sgd_s = _rollout_seconds_per_iteration(particles)
+        rollout_s = iters["svgd_iters"] * svgd_s + iters["sgd_iters"] * sgd_s
+        share = rollout_s / warm["wall_time_s"]
     return {
         "requested_particles": n,
         "particles": particles,
@@ -160,7 +191,7 @@ def _billiards_row(n: int | None, k: int) -> dict:
         "sgd_iters": iters["sgd_iters"],
         "rollout_and_gradient_s_per_svgd_iter": svgd_s,
         "rollout_and_gradient_s_per_sgd_iter": sgd_s,
-        "rollout_and_gradient_share": rollout_s / warm["wall_time_s"],
+        "rollout_and_gradient_share": share,
         "distinct_verified_codes": warm["distinct_verified_codes"],
         "distinct_verified_task_plans": warm["distinct_verified_task_plans"],
         "verified_plans": warm["verified_plans"],
@@ -181,11 +212,17 @@ def main() -> None:
                         help="pushing: values of K")
     parser.add_argument("--devices", type=int, nargs="*", default=[1, 2],
                         help="billiards: device counts to shard the particles over")
+    parser.add_argument("--no-profile", action="store_true",
+                        help="billiards: skip the in-process rollout timing (its compiles)")
+    parser.add_argument("--save", metavar="FILE",
+                        help="billiards: write the JSON so far to FILE after every row")
+    parser.add_argument("--verbose", action="store_true",
+                        help="the solves' status lines on stderr (where a long run stands)")
     args = parser.parse_args()
+    global VERBOSE
+    VERBOSE = args.verbose
     if args.task == "pushing":
-        import jax
-
-        result = {"benchmark": "solve", "task": "pushing", "device": str(jax.devices()[0]),
+        result = {"benchmark": "solve", "task": "pushing", **_device(),
                   "cpus": os.cpu_count(), **_pushing(args.max_pushes, args.json)}
         if args.json:
             print(json.dumps(result))
@@ -193,14 +230,39 @@ def main() -> None:
     rows = []
     for n in args.particles:
         for k in args.devices:
-            rows.append(_billiards_row(n, k))
+            rows.append(_billiards_row(n, k, profile=not args.no_profile))
             if not args.json:
                 print(json.dumps(rows[-1], indent=1), flush=True)
+            if args.save:
+                with open(args.save, "w") as f:
+                    json.dump(_billiards_result(rows, args.particles), f)
+    result = _billiards_result(rows, args.particles)
+    if args.json:
+        print(json.dumps(result))
+
+
+def _particle_scaling(rows: list[dict]) -> dict:
+    """Per device count: warm solve time at the most particles over that at the fewest."""
+    out = {}
+    for k in sorted({r["devices"] for r in rows}):
+        same = sorted((r for r in rows if r["devices"] == k), key=lambda r: r["particles"])
+        if len(same) > 1:
+            lo, hi = same[0], same[-1]
+            out[str(k)] = {
+                "particles": [lo["particles"], hi["particles"]],
+                "warm_solve_ratio": hi["warm_solve_wall_time_s"] / lo["warm_solve_wall_time_s"],
+                "warm_stamp_ratio": hi["warm_timings"]["stamp_s"] / lo["warm_timings"]["stamp_s"],
+            }
+    return out
+
+
+def _billiards_result(rows: list[dict], particles: list) -> dict:
+    """The benchmark's JSON for the rows measured so far."""
     speedups = {}
-    for n in args.particles:
+    for n in particles:
         same = [r for r in rows if r["requested_particles"] == n]
         one = [r for r in same if r["devices"] == 1]
-        most = max(same, key=lambda r: r["devices"])
+        most = max(same, key=lambda r: r["devices"], default=None)
         if one and most["devices"] > 1:
             speedups[str(most["particles"])] = {
                 "devices": most["devices"],
@@ -209,13 +271,10 @@ def main() -> None:
                 "warm_solve_speedup": one[0]["warm_solve_wall_time_s"]
                 / most["warm_solve_wall_time_s"],
             }
-    import jax
-
-    result = {"benchmark": "solve", "task": "billiards", "device": str(jax.devices()[0]),
-              "cpus": os.cpu_count(), "rows": rows, "shard_speedup": speedups,
-              "target_shard_speedup": 1.8}
-    if args.json:
-        print(json.dumps(result))
+    return {"benchmark": "solve", "task": "billiards", **_device(),
+            "cpus": os.cpu_count(), "rows": rows, "shard_speedup": speedups,
+            "target_shard_speedup": 1.8, "particle_scaling": _particle_scaling(rows),
+            "target_particle_scaling": 1.2}
 
 
 if __name__ == "__main__":
