@@ -340,8 +340,9 @@ def problem_jit(problem: Problem):
     robust = "" if problem.robust is None else f" robust={problem.robust.key()}"
 
     def jit(fn, name: str, *example):
+        # N.B. the label (the name's first word) names the function in compile reports.
         return cached_jit(fn, f"problem={problem.fingerprint} grad={grad}{robust} {name}",
-                          *example)
+                          *example, label=name.split()[0])
 
     return jit
 
@@ -482,8 +483,8 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
         svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),
         sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
         progress=progress,
-        jit=lambda step, state, key, phase: jit(parallel.replicate_outputs(step, devices),
-                                                f"stamp-{phase} {cfg} on {devices}", state, key),
+        jit=lambda fn, name, *example: jit(parallel.replicate_outputs(fn, devices),
+                                           f"stamp-{name} {cfg} on {devices}", *example),
         redraw=seeding.Redraw(problem, successes or {}, near=cfg.rescue_near,
                               jitter=cfg.svgd_step),
         checkpoint=checkpointer, resume=resume,
@@ -663,9 +664,16 @@ class _Compiles:
     def report(self, min_s: float = 0.5) -> dict:
         """Compiles of at least `min_s` (the rollouts' and steps'; a cache hit takes less)."""
         big = [(name, round(t, 2)) for name, t in self.log if t >= min_s]
+        # The functions that roll the scene out (the rest: kernels, optimizers, helpers).
+        rollouts = sorted({name for name, _ in self.log if name.endswith(_ROLLOUT_LABELS)})
         return {"count": len(big), "seconds": round(sum(t for _, t in big), 2),
                 "all_count": len(self.log), "all_seconds": round(sum(t for _, t in self.log), 2),
-                "largest": sorted(big, key=lambda e: -e[1])[:8], "min_s": min_s}
+                "largest": sorted(big, key=lambda e: -e[1])[:8], "min_s": min_s,
+                "rollouts": rollouts}
+
+
+# Names (`problem_jit` labels) of the compiled functions that contain a rollout.
+_ROLLOUT_LABELS = ("-evaluate)", "(final)")
 
 
 def _timings(clock: dict[str, float]) -> dict[str, float]:

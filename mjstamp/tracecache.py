@@ -56,7 +56,7 @@ def cache_dir() -> Path | None:
     return Path(setting) if setting not in ("", "1") else DEFAULT_DIR
 
 
-def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
+def cached_jit(fn: Callable, key: str, *example_args, label: str | None = None) -> Callable:
     """Returns `jax.jit(fn)`, traced at most once across processes for these shapes.
 
     Arguments and results may be pytrees (NamedTuples, optax states, dicts) and
@@ -70,13 +70,15 @@ def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
       key: identifies what `fn` computes (model, options, sizes...).
       *example_args: arrays (or pytrees of arrays) with the shapes and dtypes
         the returned function will be called with.
+      label: the name XLA's compile reports give the function (`jit(label)`;
+        `solve`'s `compiles` reads them); default fn's own name.
 
     Returns:
       A callable with the signature of `fn`, for those shapes only.
     """
     folder = cache_dir()
     if folder is None:
-        jitted = jax.jit(fn)
+        jitted = jax.jit(fn) if label is None else jax.jit(_named(fn, label))
 
         def uncached(*args):  # committed, strongly typed arguments: one compile (`_strong`)
             leaves, tree = jax.tree_util.tree_flatten(args)
@@ -111,7 +113,12 @@ def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
         payload = pickle.dumps({"export": bytes(exported.serialize()), "out_tree": entry[1]})
         _write_atomic(path, payload)
     exported, out_tree = entry
-    call = jax.jit(exported.call)
+
+    def run(*xs):
+        return exported.call(*xs)
+
+    run.__name__ = run.__qualname__ = label or getattr(fn, "__name__", "call")
+    call = jax.jit(run)
     # N.B. a function sharded over k devices (`mjstamp.parallel`) is exported for k
     # and must be called with its arguments on those k devices.
     place = None
@@ -127,6 +134,16 @@ def cached_jit(fn: Callable, key: str, *example_args) -> Callable:
         return jax.tree_util.tree_unflatten(out_tree, call(*xs))
 
     return cached
+
+
+def _named(fn: Callable, label: str) -> Callable:
+    """The function fn under another name (XLA names it so in its compile reports)."""
+    @functools.wraps(fn)
+    def named(*args):
+        return fn(*args)
+
+    named.__name__ = named.__qualname__ = label
+    return named
 
 
 def _strong(x, place=None):

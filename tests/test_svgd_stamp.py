@@ -351,3 +351,77 @@ def test_backtrack_takes_a_step_into_a_non_finite_region_back():
     plain = run_stamp(cliff, start, kernel, dataclasses.replace(config, backtrack=False),
                       progress=False, redraw=redraw)
     assert drawn == [1] and plain.nonfinite_redrawn[0] == 1  # frozen there, then re-drawn
+
+
+def _with_features(x):
+    """two_modes with features of the same evaluation: ψ(θ) = (sin θ₁, θ₂²)."""
+    return two_modes(x), jnp.stack([jnp.sin(x[:, 0]), x[:, 1] ** 2], axis=1)
+
+
+def _compiled_names(logdensity_fn, kernel, init, **config):
+    """Names run_stamp hands its jit hook, in order, and the run's result."""
+    names = []
+
+    def jit(fn, name, *example):
+        names.append(name)
+        return jax.jit(fn)
+
+    cfg = StampConfig(svgd_learning_rate=0.05, sgd_learning_rate=0.05, seed=3,
+                      svgd_max_iters=6, sgd_max_iters=6, **config)
+    return names, run_stamp(logdensity_fn, init, kernel, cfg, progress=False, jit=jit)
+
+
+def _init_dim(d):
+    return lambda key: jax.random.uniform(key, (12, d), minval=-4.0, maxval=4.0)
+
+
+@pytest.mark.parametrize(
+    "logdensity_fn, kernel, d, jacobian, shared",
+    [
+        (_with_features, "feature", 2, "auto", True),  # both forward mode: billiards' case
+        (_with_features, "feature", 3, "auto", False),  # SGD takes one pullback
+        (_with_features, "feature", 3, "fwd", True),
+        (two_modes, None, 3, "auto", True),  # rbf: both one pullback
+        (two_modes, None, 2, "auto", False),  # rbf pullback, SGD forward mode
+    ],
+)
+def test_sgd_phase_reuses_the_svgd_evaluation_when_it_differentiates_the_same_way(
+        logdensity_fn, kernel, d, jacobian, shared):
+    """One compiled rollout serves both phases where their derivatives agree (issue 12)."""
+    def logdensity(x):
+        return logdensity_fn(x[:, :2]) if d == 2 else logdensity_fn(x[:, :2] + x[:, 2:3])
+
+    k = feature_kernel() if kernel == "feature" else None
+    names, shared_run = _compiled_names(logdensity, k, _init_dim(d), jacobian=jacobian)
+    expected = ["svgd-evaluate", "svgd-update", "sgd-update"]
+    if not shared:
+        expected.insert(2, "sgd-evaluate")
+    assert names == expected
+    # The same run with each phase evaluating on its own (jit=None keeps the halves
+    # apart too): the plans do not depend on the sharing.
+    cfg = StampConfig(svgd_learning_rate=0.05, sgd_learning_rate=0.05, seed=3,
+                      svgd_max_iters=6, sgd_max_iters=6, jacobian=jacobian)
+    alone = run_stamp(logdensity, _init_dim(d), k, cfg, progress=False,
+                      sgd_logdensity_fn=lambda x: logdensity(x))
+    np.testing.assert_allclose(shared_run.particles, alone.particles, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(shared_run.svgd_particles, alone.svgd_particles, rtol=0,
+                               atol=0)
+
+
+def test_a_step_is_its_update_of_its_evaluation():
+    """step(state, key) == step.update(state, step.evaluate(θ), key), for every builder."""
+    from mjstamp.svgd import build_dsvgd_step, build_sgd_step, build_svgd_step, init
+
+    x = uniform_init(jax.random.key(0))[:8]
+    opt = optax.adam(0.1)
+    steps = [build_svgd_step(two_modes, None, opt),
+             build_svgd_step(_with_features, feature_kernel(), opt),
+             build_dsvgd_step(two_modes, lambda t: two_modes(t) - 1.0, None, opt),
+             build_sgd_step(two_modes, opt)]
+    for step in steps:
+        state = init(x, opt)
+        whole, info = jax.jit(step)(state, jax.random.key(1))
+        halves, info2 = step.update(state, step.evaluate(state.particles), jax.random.key(1))
+        np.testing.assert_allclose(whole.particles, halves.particles, rtol=1e-12)
+        np.testing.assert_allclose(info.logdensity, info2.logdensity, rtol=1e-12)
+        assert not np.allclose(whole.particles, x)  # the step moved them

@@ -10,6 +10,7 @@ from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
 from mjstamp.tasks import Task, costs
+from mjstamp.tracecache import cached_jit
 
 
 def test_declaration_errors_name_the_culprit(tiny_xml):
@@ -94,14 +95,27 @@ def test_billiards_contacts_match_mujoco_contact_list(billiards_task):
 
 
 @pytest.mark.slow
-def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task):
+def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatch):
+    from mjstamp import solve as solve_mod
     from mjstamp.solve import solve
 
+    labels = []  # what the solve compiles, by the label its compile reports carry
+
+    def spy(fn, key, *example, label=None):
+        labels.append(label)
+        return cached_jit(fn, key, *example, label=label)
+
+    monkeypatch.setattr(solve_mod, "cached_jit", spy)
     task = tiny_task()
     config = {"particles": 8, "svgd_max_iters": 15, "sgd_max_iters": 15, "min_iters": 5,
               "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05, "rescue_window": 3}
     result = solve(task, config, seed=0, progress=False)
+    # Two functions roll the scene out (issue 12): the evaluation both STAMP phases share
+    # (θ is 2-D: both differentiate forward mode) and the final evaluation.
+    assert sorted(labels) == ["final", "stamp-sgd-update", "stamp-svgd-evaluate",
+                              "stamp-svgd-update"]
     summary = result.summary()
+    assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)"}
     assert summary["particles"] == 8 and summary["task"] == "tiny"
     rescue = summary["rescue"]  # the stall rescue's report: re-draws, task plans before/after
     assert rescue["redraws"] == int(result.stamp.rescued.sum())

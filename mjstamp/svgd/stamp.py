@@ -38,6 +38,7 @@ from mjstamp.svgd.steps import (
     init,
     near_zero_share,
     near_zero_threshold,
+    sgd_mode,
 )
 
 __all__ = [
@@ -425,8 +426,10 @@ def run_stamp(
       progress: show a tqdm bar; None shows it when stderr is a terminal and
         prints a status line per phase and every tenth of it otherwise (a log
         or a pipe).
-      jit: how each phase's step is compiled, jit(step, example_state,
-        example_key, phase_name) -> compiled step; default `jax.jit`. A task
+      jit: how the steps' halves are compiled, jit(fn, name, *example_args)
+        -> compiled fn, with name "svgd-evaluate", "svgd-update",
+        "sgd-evaluate" or "sgd-update" (the SGD phase reuses the SVGD phase's
+        compiled evaluation when they share it); default `jax.jit`. A task
         passes `mjstamp.tracecache.cached_jit` here so a re-run skips tracing.
       redraw: redraw(key, k) -> (k, d) fresh particles for the stalled ones
         (`config.rescue_window`) and the persistently non-finite ones
@@ -463,7 +466,7 @@ def run_stamp(
 
     (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer) = _phase_steps(
         logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
-        svgd_optimizer, sgd_optimizer,
+        svgd_optimizer, sgd_optimizer, particles.shape[1],
     )  # fmt: skip
     tty = sys.stderr.isatty()
     show = tty if progress is None else bool(progress)
@@ -505,9 +508,16 @@ def run_stamp(
 
 
 def _phase_steps(
-    logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn, svgd_optimizer, sgd_optimizer
+    logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn, svgd_optimizer, sgd_optimizer,
+    dim: int,
 ):
-    """((SVGD step, its optimizer), (SGD step, its optimizer)) of `run_stamp`'s arguments."""
+    """((SVGD step, its optimizer), (SGD step, its optimizer)) of `run_stamp`'s arguments.
+
+    When the SGD phase ascends the same log density and its scores come the
+    way the SVGD step's do (forward mode with a feature kernel, or one pullback
+    without), the SGD step reads the SVGD step's own evaluation
+    (`step.evaluate`): one rollout compiled for both phases.
+    """
     svgd_optimizer = svgd_optimizer or _default_optimizer(config.svgd_learning_rate)
     sgd_optimizer = sgd_optimizer or _default_optimizer(config.sgd_learning_rate)
     if log_target_fn is None:
@@ -518,8 +528,12 @@ def _phase_steps(
         svgd_step = build_dsvgd_step(
             logdensity_fn, log_target_fn, kernel, svgd_optimizer, jacobian=config.jacobian
         )
-    sgd_step = build_sgd_step(sgd_logdensity_fn or logdensity_fn, sgd_optimizer,
-                              jacobian=config.jacobian)
+    sgd_fn = sgd_logdensity_fn or logdensity_fn
+    features = kernel is not None and kernel.uses_density_features
+    shared = (sgd_fn is logdensity_fn and log_target_fn is None
+              and sgd_mode(config.jacobian, dim) == ("fwd" if features else "rev"))
+    sgd_step = build_sgd_step(sgd_fn, sgd_optimizer, jacobian=config.jacobian,
+                              evaluate=svgd_step.evaluate if shared else None)
     return (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer)
 
 
@@ -551,6 +565,34 @@ class _Loop:
             disable=not show,
         )
         self.rows: list[IterationRecord] = []
+        self.evaluations: dict[int, tuple] = {}  # id(step.evaluate) -> (it, compiled)
+
+    def _compile(self, step, fresh_state: SVGDState, name: str):
+        """The phase's step, compiled as its two halves (`mjstamp.svgd.steps`).
+
+        The evaluation (the rollouts) is compiled once per `step.evaluate` and
+        shared by the phases built on it; the update (kernel, optimizer) per
+        phase. The first evaluation, of the phase's initial particles, is the
+        update's example and serves the phase's first iteration.
+        """
+        jit = self.jit or (lambda fn, _name, *_example: jax.jit(fn))
+        x0 = fresh_state.particles
+        key = id(step.evaluate)
+        if key not in self.evaluations:  # N.B. the function is kept: its id stays its own
+            self.evaluations[key] = (step.evaluate, jit(step.evaluate, f"{name}-evaluate", x0))
+        evaluate = self.evaluations[key][1]
+        first = {"particles": x0, "evaluation": evaluate(x0)}
+        update = jit(step.update, f"{name}-update", fresh_state, first["evaluation"], self.key)
+
+        def compiled(state: SVGDState, key: jax.Array):
+            if first and state.particles is first.pop("particles"):
+                ev = first.pop("evaluation")
+            else:
+                first.clear()
+                ev = evaluate(state.particles)
+            return update(state, ev, key)
+
+        return compiled
 
     def snapshot(self, phase: int, t: int, state) -> LoopSnapshot:
         """The `LoopSnapshot` after iteration t of `phase` (fetches the state to the host)."""
@@ -620,12 +662,11 @@ class _Loop:
                 return state, True
             if resume.iteration >= max_iters:
                 return state, False
-        step = (jax.jit(step) if self.jit is None
-                else self.jit(step, fresh_state, self.key, name))
+        self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
+        step = self._compile(step, fresh_state, name)
         if self.guard is not None and not done:
             self.guard.reset()  # a new phase: a new objective, a new optimizer
         every = max(1, max_iters // 10)
-        self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
         for t in range(len(done) + 1, max_iters + 1):
             started = time.perf_counter()
             self.key, sub = jax.random.split(self.key)
