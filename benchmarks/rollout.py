@@ -1,7 +1,8 @@
 """Rollout speed of the billiards scene: MJX forward and value-and-grad vs MuJoCo C.
 
 Prints one JSON object (with --json) holding, for N = 1, 64, 256, 1024 particles:
-µs per particle-step of an MJX forward rollout, of an MJX value-and-grad rollout,
+µs per particle-step of an MJX forward rollout, of an MJX value-and-grad rollout
+(reverse mode, and forward mode with d = 2 tangents as a solve runs at d <= 2),
 and of MuJoCo C stepping the same scene (`mujoco.rollout`, all cores) measured in
 the same run, with the ratios MJX / C (the figure that counts on a noisy, shared
 machine). It also times two fresh processes that build and run the
@@ -69,7 +70,28 @@ def _functions(scene, horizon, example=None, devices=1):
     if example is not None:
         key = f"benchmark-rollout billiards horizon={horizon}"
         return None, cached_jit(value_and_grad, key, *example)
-    return jax.jit(final_qpos), jax.jit(value_and_grad)
+    return jax.jit(final_qpos), jax.jit(value_and_grad), jax.jit(_forward_mode(final_qpos))
+
+
+def _forward_mode(final_qpos):
+    """Per-particle values and gradients carrying d = 2 tangents through the rollout.
+
+    What a solve runs at d <= 2 (`svgd.build_evaluate`, 'auto'): each particle's
+    loss ‖q_T‖² and its gradient in v, from one pass with two tangents.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    def per_particle(q, v):
+        return jnp.sum(final_qpos(q, v)[:, -1] ** 2, axis=1)
+
+    def value_and_grads(q, v):
+        tangents = jnp.broadcast_to(jnp.eye(2, dtype=v.dtype)[:, None, :], (2, *v.shape))
+        out, jac = jax.vmap(lambda t: jax.jvp(lambda x: per_particle(q, x), (v,), (t,)),
+                            out_axes=(None, 0))(tangents)
+        return out, jac.T
+
+    return value_and_grads
 
 
 def _inputs(scene, n, seed=0):
@@ -177,7 +199,7 @@ def main() -> None:
     from mjstamp.scenes import Scene
 
     scene = Scene.shipped("billiards")
-    forward, value_and_grad = _functions(scene, args.horizon, devices=args.devices)
+    forward, value_and_grad, fwd_grad = _functions(scene, args.horizon, devices=args.devices)
     T = args.horizon
     rows = []
     for n in args.particles:
@@ -188,6 +210,8 @@ def main() -> None:
         jax.block_until_ready(forward(qpos0, v))
         fwd = _time(lambda q=qpos0, v=v: forward(q, v), args.repeats) / (n * T) * 1e6
         vg = _time(lambda q=qpos0, v=v: value_and_grad(q, v), args.repeats) / (n * T) * 1e6
+        jax.block_until_ready(fwd_grad(qpos0, v))
+        vgf = _time(lambda q=qpos0, v=v: fwd_grad(q, v), args.repeats) / (n * T) * 1e6
         c = _mujoco_c(scene, n, T, args.repeats)
         rows.append({
             "particles": n,
@@ -196,11 +220,15 @@ def main() -> None:
             "mujoco_c_us_per_particle_step": c,
             "forward_over_c": fwd / c,
             "value_and_grad_over_c": vg / c,
+            # Forward mode (2 tangents), as a solve differentiates at d <= 2.
+            "mjx_value_and_grad_fwd_us_per_particle_step": vgf,
+            "value_and_grad_fwd_over_c": vgf / c,
             "first_call_s": compile_vg,
         })
         if not args.json:
-            print(f"N={n:5d}  fwd {fwd:8.2f} us  v&g {vg:8.2f} us  C {c:6.3f} us  "
-                  f"(fwd/C {fwd / c:6.1f}, v&g/C {vg / c:6.1f})", flush=True)
+            print(f"N={n:5d}  fwd {fwd:8.2f} us  v&g {vg:8.2f} us  v&g fwd-mode {vgf:8.2f} us"
+                  f"  C {c:6.3f} us  (fwd/C {fwd / c:6.1f}, v&g/C {vg / c:6.1f}, "
+                  f"fwd-mode/C {vgf / c:6.1f})", flush=True)
 
     result = {
         "benchmark": "rollout",

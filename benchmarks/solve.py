@@ -19,7 +19,8 @@ over K host devices, `mjstamp.parallel`), and the output carries
 `shard_speedup` = warm STAMP seconds on 1 device / on the most devices, the
 process CPU share during STAMP (`stamp_cpu_share`: 2.0 keeps two cores busy),
 the compiles each solve did (`compiles`: count and seconds of those >= 0.5 s,
-the largest by function), and the median iteration times per phase (the
+the largest by function; `cold_rollout_compiles`: how many distinct functions
+that roll the scene out the cold solve compiled), and the median iteration times per phase (the
 profile that says where a ratio below target comes from).
 
 Pushing (`--task pushing --max-pushes 1 2 3 4 5`): the default solve for each
@@ -181,6 +182,8 @@ def _billiards_row(n: int | None, k: int, profile: bool = True) -> dict:
         "cold_process_wall_s": cold_wall,
         "cold_solve_wall_time_s": cold["wall_time_s"],
         "cold_compiles": cold.get("compiles"),
+        # The compiled functions that roll the scene out, in the cold solve (issue 12: <= 2).
+        "cold_rollout_compiles": len((cold.get("compiles") or {}).get("rollouts", [])),
         "warm_process_wall_s": warm_wall,
         "warm_solve_wall_time_s": warm["wall_time_s"],
         "warm_timings": warm["timings"],

@@ -149,7 +149,8 @@ def test_a_robust_solve_records_its_draws_and_keys_its_traces_by_them(tiny_task,
     assert one.robust.key() != two.robust.key()
     assert one.robust.key() == result.problem.with_robust(2, seed=0).robust.key()
     keys = []
-    monkeypatch.setattr(solve_mod, "cached_jit", lambda fn, key, *example: keys.append(key))
+    monkeypatch.setattr(solve_mod, "cached_jit",
+                        lambda fn, key, *example, label=None: keys.append(key))
     for p in (one, two, one.with_robust(0, seed=0)):
         problem_jit(p)(lambda t: t, "probe", np.zeros(2))
     assert len(set(keys)) == 3  # the draws are constants of the trace: part of its key
