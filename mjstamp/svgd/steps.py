@@ -406,13 +406,16 @@ def stein_direction(
       STAMP eq. (1), eq. (4), Algorithm 1 line 6.
     """
     check_particles(particles)
-    evaluate = build_evaluate(
-        logdensity_fn, features=kernel.uses_density_features,
-        jacobian=jacobian if kernel.uses_density_features else "rev",
-        log_target_fn=log_target_fn,
-    )  # fmt: skip
+    evaluate = _stein_evaluate(logdensity_fn, kernel, jacobian, log_target_fn)
     return _direction(evaluate(particles), kernel, particles,
                       weighted=log_target_fn is not None)
+
+
+def _stein_evaluate(logdensity_fn, kernel: Kernel, jacobian, log_target_fn):
+    """The evaluation a Stein step reads: with the features a kernel reads, else one pullback."""
+    features = kernel.uses_density_features
+    return build_evaluate(logdensity_fn, features=features,
+                          jacobian=jacobian if features else "rev", log_target_fn=log_target_fn)
 
 
 def _direction(ev: Evaluation, kernel: Kernel, x: jax.Array, *, weighted: bool):
@@ -606,10 +609,8 @@ def _build_stein_step(
     _check_builder(logdensity_fn, kernel, optimizer, jacobian)
     if weighted and not callable(log_target_fn):
         raise ValueError(f"log_target_fn must be callable; got {log_target_fn!r}")
-    features = kernel.uses_density_features
-    evaluate = build_evaluate(logdensity_fn, features=features,
-                              jacobian=jacobian if features else "rev",
-                              log_target_fn=log_target_fn if weighted else None)
+    evaluate = _stein_evaluate(logdensity_fn, kernel, jacobian,
+                               log_target_fn if weighted else None)
 
     def update(state: SVGDState, ev: Evaluation, key: jax.Array) -> tuple[SVGDState, StepInfo]:
         del key  # deterministic; kept for the uniform step(state, key) signature
