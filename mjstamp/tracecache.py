@@ -113,12 +113,7 @@ def cached_jit(fn: Callable, key: str, *example_args, label: str | None = None) 
         payload = pickle.dumps({"export": bytes(exported.serialize()), "out_tree": entry[1]})
         _write_atomic(path, payload)
     exported, out_tree = entry
-
-    def run(*xs):
-        return exported.call(*xs)
-
-    run.__name__ = run.__qualname__ = label or getattr(fn, "__name__", "call")
-    call = jax.jit(run)
+    call = jax.jit(_named(exported.call, label or getattr(fn, "__name__", "call")))
     # N.B. a function sharded over k devices (`mjstamp.parallel`) is exported for k
     # and must be called with its arguments on those k devices.
     place = None
