@@ -13,7 +13,7 @@ Paper (one GPU, 10 seeds): Table II billiards 26.1 s (100 particles) to 33.5 s
 
 Usage: python -m benchmarks.table2 [--table 2|3] [--tasks billiards pushing]
            [--particles 100 200 400 800] [--max-pushes 1 2 3 4 5] [--seeds 3]
-           [--set KEY=VALUE ...] [--json]
+           [--set KEY=VALUE ...] [--save FILE] [--json]
 JSON: {"table": 2, "rows": [{"task", "particles", "max_pushes", "dimension",
        "runtime_mean_s", "runtime_std_s", "runtime_s", "distinct_verified_task_plans"}]}
 """
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 import numpy as np
@@ -81,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--devices", type=int, default=None,
                         help="host devices (default: one per core, at most 8)")
+    parser.add_argument("--save", metavar="FILE",
+                        help="write the JSON so far to FILE after every row (a long run "
+                             "keeps what it measured)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     if args.seeds < 1:
@@ -97,18 +101,29 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[table{args.table}] {msg}", file=sys.stderr, flush=True)
 
     rows = []
+    import jax
+
+    where = {"devices": len(jax.devices()), "device_kind": jax.devices()[0].platform,
+             "cpus": os.cpu_count(), "jax": jax.__version__, "seeds": args.seeds}
+
+    def add(row: dict) -> None:
+        rows.append(row)
+        if args.save:
+            with open(args.save, "w") as f:
+                json.dump({"table": args.table, **where, "rows": rows}, f)
+
     if args.table == 2:
         for name in args.tasks:
             for n in args.particles:
                 extra = {"max_pushes": 1} if name == "pushing" else {}
                 overrides = {**extra, **cli._parse_settings(name, args.set), "particles": n}
-                rows.append(_row(name, overrides, args.seeds, say))
+                add(_row(name, overrides, args.seeds, say))
     else:
         for k in args.max_pushes:
             overrides = {**cli._parse_settings("pushing", args.set), "max_pushes": k}
-            rows.append(_row("pushing", overrides, args.seeds, say))
+            add(_row("pushing", overrides, args.seeds, say))
     if args.json:
-        print(json.dumps({"table": args.table, "rows": rows}))
+        print(json.dumps({"table": args.table, **where, "rows": rows}))
     else:
         print(format_table(args.table, rows))
     return 0
