@@ -26,9 +26,15 @@ tolerates the uncertainty, or the relaxed cost does not lead to one.
 `--uncertain KIND[=SPREAD] ...` declares those kinds on the task, as a user
 would (`task.uncertain(kind, spread=...)`), instead of the default uncertainty.
 
+`--achievable SHOTS` asks instead what any planner could return: SHOTS
+uniform draws over θ's box replayed in MuJoCo C, and every verified one scored
+like a solve's plans (same M, same seed). It reports the best score per task
+plan and per code, and how many codes have any plan at a given score: a robust
+solve's median cannot exceed the best plans' scores.
+
 Usage: python -m benchmarks.robustness [--tasks billiards pushing] [--seeds 1]
            [--first-seed 0] [--nominal-only] [--robust 8] [--set KEY=VALUE ...]
-           [--uncertain KIND[=SPREAD] ...] [--devices N] [--json]
+           [--uncertain KIND[=SPREAD] ...] [--achievable SHOTS] [--devices N] [--json]
 """
 
 from __future__ import annotations
@@ -91,6 +97,45 @@ def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> d
     }
 
 
+def _achievable(name: str, overrides: dict, shots: int, seed: int, declare: list[tuple],
+                chunk: int = 4096) -> dict:
+    """Scores of every verified plan among `shots` uniform draws (the ceiling of any planner)."""
+    from mjstamp import modes, plans, tasks
+
+    task, _ = tasks.load(name, **overrides)
+    for kind, spread in declare:
+        task.uncertain(kind, spread=spread)
+    problem = task.build()
+    rng = np.random.default_rng([seed, 16])
+    started = time.perf_counter()
+    thetas, plan, code = [], [], []
+    for start in range(0, shots, chunk):
+        theta = modes.uniform_theta(task, min(chunk, shots - start), rng)
+        decoded = plans.decode(problem, plans.simulate_c(problem, theta), theta)
+        thetas.append(theta[decoded.ok])
+        plan += [str(p) for p in decoded.plan[decoded.ok]]
+        code += [str(c) for c in decoded.code[decoded.ok]]
+    theta = np.concatenate(thetas)
+    rob = plans.robustness(problem, theta, np.asarray(plan), samples=SAMPLES, seed=seed)
+    score = rob.success
+    best_plan = {p: float(score[[i for i, q in enumerate(plan) if q == p]].max())
+                 for p in sorted(set(plan))}
+    best_code = {c: float(score[[i for i, q in enumerate(code) if q == c]].max())
+                 for c in sorted(set(code))}
+    levels = (0.25, 0.5, 0.75, 1.0)
+    return {
+        "shots": shots, "verified": len(theta), "seed": seed, "seconds":
+        round(time.perf_counter() - started, 1),
+        "score_max": float(score.max()) if len(score) else None,
+        "score_quantiles": {q: float(np.quantile(score, q)) for q in (0.5, 0.9, 0.99)}
+        if len(score) else None,
+        "best_by_task_plan": best_plan, "best_by_code": best_code,
+        "codes_with_a_plan_at_least": {lv: sum(v >= lv for v in best_code.values())
+                                       for lv in levels},
+        "plans_at_least": {lv: int((score >= lv).sum()) for lv in levels},
+    }
+
+
 def _task_block(name: str, rows: dict[str, list[dict]]) -> dict:
     def mean(label, key):
         vals = [r[key] for r in rows[label] if r[key] is not None]
@@ -133,10 +178,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--uncertain", nargs="*", default=None, metavar="KIND[=SPREAD]",
                         help="declare these kinds on the task (task.uncertain(kind, "
                         "spread=...)) instead of the default uncertainty")
+    parser.add_argument("--achievable", type=int, default=None, metavar="SHOTS",
+                        help="no solves: score every verified plan among SHOTS uniform draws")
     parser.add_argument("--devices", type=int, default=None,
                         help="host devices (default: one per core, at most 8)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
+    if args.achievable is not None and args.achievable < 1:
+        parser.error(f"--achievable={args.achievable} must be >= 1")
     if args.seeds < 1:
         parser.error(f"--seeds={args.seeds} must be >= 1")
     if args.robust < 1:
@@ -160,6 +209,15 @@ def main(argv: list[str] | None = None) -> int:
                  "first_seed": args.first_seed, "nominal_only": args.nominal_only,
                  "robust": args.robust, "samples": SAMPLES, "set": args.set,
                  "uncertain": args.uncertain}
+    if args.achievable is not None:
+        for name in args.tasks:
+            base = {**TASKS[name], **cli._parse_settings(name, args.set)}
+            out[name] = {"achievable": [_achievable(name, base, args.achievable, seed, declare)
+                                        for seed in range(args.first_seed,
+                                                          args.first_seed + args.seeds)]}
+            print(f"[robustness] {name}: {json.dumps(out[name])}", file=sys.stderr, flush=True)
+        print(json.dumps(out))
+        return 0
     for name in args.tasks:
         base = {**TASKS[name], **cli._parse_settings(name, args.set)}
         rows: dict[str, list[dict]] = {"nominal": [], "robust": []}
