@@ -30,15 +30,18 @@ def test_table_layouts():
 
 
 @pytest.mark.slow
-def test_table2_runs_on_a_tiny_setting():
+def test_table2_runs_on_a_tiny_setting(tmp_path):
+    saved = tmp_path / "table2.json"
     proc = subprocess.run(
         [sys.executable, "-m", "benchmarks.table2", "--tasks", "billiards", "--particles", "8",
          "16", "--seeds", "2", "--devices", "1", "--set", "svgd_max_iters=3", "--set",
-         "sgd_max_iters=3", "--set", "screen=1", "--json"],
+         "sgd_max_iters=3", "--set", "screen=1", "--save", str(saved), "--json"],
         capture_output=True, text=True, timeout=1500, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert out["table"] == 2
+    # --save wrote the rows after each, the last time with every row
+    assert json.loads(saved.read_text()) == out
+    assert out["table"] == 2 and out["devices"] == 1 and out["seeds"] == 2
     assert [r["particles"] for r in out["rows"]] == [8, 16]
     for r in out["rows"]:
         assert len(r["runtime_s"]) == 2 and r["runtime_mean_s"] > 0
