@@ -113,15 +113,15 @@ def _achievable(name: str, overrides: dict, shots: int, seed: int, declare: list
         theta = modes.uniform_theta(task, min(chunk, shots - start), rng)
         decoded = plans.decode(problem, plans.simulate_c(problem, theta), theta)
         thetas.append(theta[decoded.ok])
-        plan += [str(p) for p in decoded.plan[decoded.ok]]
-        code += [str(c) for c in decoded.code[decoded.ok]]
-    theta = np.concatenate(thetas)
-    rob = plans.robustness(problem, theta, np.asarray(plan), samples=SAMPLES, seed=seed)
-    score = rob.success
-    best_plan = {p: float(score[[i for i, q in enumerate(plan) if q == p]].max())
-                 for p in sorted(set(plan))}
-    best_code = {c: float(score[[i for i, q in enumerate(code) if q == c]].max())
-                 for c in sorted(set(code))}
+        plan.append(decoded.plan[decoded.ok].astype(str))
+        code.append(decoded.code[decoded.ok].astype(str))
+    theta, plan, code = (np.concatenate(x) for x in (thetas, plan, code))
+    score = plans.robustness(problem, theta, plan, samples=SAMPLES, seed=seed).success
+
+    def best(groups: np.ndarray) -> dict[str, float]:
+        return {g: float(score[groups == g].max()) for g in sorted(set(groups))}
+
+    best_plan, best_code = best(plan), best(code)
     levels = (0.25, 0.5, 0.75, 1.0)
     return {
         "shots": shots, "verified": len(theta), "seed": seed, "seconds":

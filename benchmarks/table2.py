@@ -24,6 +24,7 @@ import argparse
 import json
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -100,17 +101,19 @@ def main(argv: list[str] | None = None) -> int:
     def say(msg):
         print(f"[table{args.table}] {msg}", file=sys.stderr, flush=True)
 
-    rows = []
     import jax
 
-    where = {"devices": len(jax.devices()), "device_kind": jax.devices()[0].platform,
-             "cpus": os.cpu_count(), "jax": jax.__version__, "seeds": args.seeds}
+    from mjstamp.fileio import write_atomic
+
+    rows = []
+    result = {"table": args.table, "devices": len(jax.devices()),
+              "device_kind": jax.devices()[0].platform, "cpus": os.cpu_count(),
+              "jax": jax.__version__, "seeds": args.seeds, "rows": rows}
 
     def add(row: dict) -> None:
         rows.append(row)
         if args.save:
-            with open(args.save, "w") as f:
-                json.dump({"table": args.table, **where, "rows": rows}, f)
+            write_atomic(Path(args.save), lambda f: f.write(json.dumps(result).encode()))
 
     if args.table == 2:
         for name in args.tasks:
@@ -123,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             overrides = {**cli._parse_settings("pushing", args.set), "max_pushes": k}
             add(_row("pushing", overrides, args.seeds, say))
     if args.json:
-        print(json.dumps({"table": args.table, **where, "rows": rows}))
+        print(json.dumps(result))
     else:
         print(format_table(args.table, rows))
     return 0
