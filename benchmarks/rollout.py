@@ -77,19 +77,18 @@ def _forward_mode(final_qpos):
     """Per-particle values and gradients carrying d = 2 tangents through the rollout.
 
     What a solve runs at d <= 2 (`svgd.build_evaluate`, 'auto'): each particle's
-    loss ‖q_T‖² and its gradient in v, from one pass with two tangents.
+    loss ‖q_T‖² and its gradient in v, from one pass with two tangents, by the
+    solve's own `value_and_batched_jacobian`.
     """
-    import jax
     import jax.numpy as jnp
 
-    def per_particle(q, v):
-        return jnp.sum(final_qpos(q, v)[:, -1] ** 2, axis=1)
+    from mjstamp.svgd._jacobian import value_and_batched_jacobian
 
     def value_and_grads(q, v):
-        tangents = jnp.broadcast_to(jnp.eye(2, dtype=v.dtype)[:, None, :], (2, *v.shape))
-        out, jac = jax.vmap(lambda t: jax.jvp(lambda x: per_particle(q, x), (v,), (t,)),
-                            out_axes=(None, 0))(tangents)
-        return out, jac.T
+        def per_particle(x):
+            return jnp.sum(final_qpos(q, x)[:, -1] ** 2, axis=1, keepdims=True)
+
+        return value_and_batched_jacobian(per_particle, v, "fwd")
 
     return value_and_grads
 

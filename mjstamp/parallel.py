@@ -202,19 +202,17 @@ def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, P())
 
 
-def replicate_outputs(fn: Callable, k: int, *, within_process: bool = False) -> Callable:
-    """`fn` whose outputs are whole on each of the first k devices, when they span processes.
+def replicate_outputs(fn: Callable, k: int) -> Callable:
+    """`fn` whose outputs are whole on each of the first k devices (k > 1).
 
     N.B. the STAMP step's outputs (particles, optimizer state, diagnostics):
     every process of a run over several (`join_processes`) can then read them
-    without a collective, so the loop and its checkpoints stay per-process.
-    Within one process `fn` is returned as it is (XLA may keep them sharded),
-    unless `within_process`: outputs that another function compiled for the k
-    devices takes as they are, without a round trip through the host to
-    reshard them (an evaluation handed to its update, `mjstamp.svgd.steps`).
+    without a collective, so the loop and its checkpoints stay per-process; and
+    within one process, another function compiled for the k devices takes them
+    as they are, without a round trip through the host to reshard them (an
+    evaluation handed to its update, `mjstamp.svgd.steps`).
     """
-    if k == 1 or (not within_process
-                  and all(d.process_index == jax.process_index() for d in check_devices(k))):
+    if k == 1:
         return fn
     place = replicated(particle_mesh(k))
     return lambda *args: jax.lax.with_sharding_constraint(fn(*args), place)

@@ -484,7 +484,7 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
         sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
         progress=progress,
         jit=lambda fn, name, *example: jit(
-            parallel.replicate_outputs(fn, devices, within_process=True),
+            parallel.replicate_outputs(fn, devices),
             f"stamp-{name} {cfg} on {devices}", *example),
         redraw=seeding.Redraw(problem, successes or {}, near=cfg.rescue_near,
                               jitter=cfg.svgd_step),
