@@ -324,6 +324,34 @@ def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
         StampConfig(backtrack=1)
 
 
+def slope(x):
+    """Log ρ = −x: every step towards larger x loses 0.1 nat per 0.1 moved."""
+    return -x[:, 0]
+
+
+def test_backtrack_bounds_small_falls_by_the_peak_not_the_last_point():
+    """Steps that each fall less than the margin cannot add up to more than it.
+
+    An optimizer that always moves +0.1 (down the slope, 0.1 nat a step,
+    under the 1-nat margin of d = 1): compared with its last accepted point
+    every step would pass and the particle would slide 3 nats in 30 steps;
+    compared with its peak, it is held within 1 nat of where it began.
+    """
+    downhill = optax.GradientTransformation(
+        lambda params: optax.EmptyState(),
+        lambda updates, state, params=None: (jnp.full_like(updates, 0.1), state))
+    start = jnp.array([[0.0], [5.0]])
+    config = StampConfig(svgd_max_iters=30, sgd_max_iters=0, min_iters=30)
+    kernel = rbf(bandwidth=1e-3)  # the two particles do not feel each other
+    plain = run_stamp(slope, start, kernel, dataclasses.replace(config, backtrack=False),
+                      svgd_optimizer=downhill, progress=False)
+    np.testing.assert_allclose(np.asarray(plain.particles)[:, 0] - [0.0, 5.0], 3.0, rtol=1e-9)
+    guarded = run_stamp(slope, start, kernel, config, svgd_optimizer=downhill, progress=False)
+    fall = np.asarray(guarded.particles)[:, 0] - [0.0, 5.0]
+    assert np.all(fall > 0.5) and np.all(fall <= 1.0 + 1e-9)  # moved, but within a nat
+    assert guarded.diagnostics.backtracked.sum() > 0
+
+
 def cliff(x):
     """Log ρ = x up to a cliff at x = 0.35, NaN beyond it (a rollout that blew up)."""
     return jnp.where(x[:, 0] < 0.35, x[:, 0], jnp.nan)

@@ -846,7 +846,9 @@ class _Backtrack:
 
     The step reports log ρ at the particles it started from, so a step's
     outcome is known one iteration later: at iteration t, log ρ(θ_t) is
-    compared with log ρ at the particle's last accepted point. Where it fell,
+    compared with the highest log ρ the particle has held in the phase (its
+    peak; comparing with the last accepted point instead would let small
+    falls add up without bound). Where it fell,
     the particle goes back to that point (the update just computed from θ_t
     is dropped), its scale halves and its optimizer rows are zeroed; where it
     did not, θ_t is accepted and the update from it is scaled. Particles whose
@@ -864,11 +866,13 @@ class _Backtrack:
         """Forgets every accepted point; scales back to 1 (a new phase)."""
         self.theta = None  # (n, d) host array once the first iteration is seen
         self.logp = np.full(self.n, np.nan)
+        self.peak = np.full(self.n, np.nan)  # SVGD: the highest accepted log density
         self.scale = np.ones(self.n)
 
     def forget(self, idx: np.ndarray) -> None:
         """Particles re-drawn: no accepted point, scale 1."""
         self.logp[idx] = np.nan
+        self.peak[idx] = np.nan
         self.scale[idx] = 1.0
 
     def best(self, particles: jax.Array) -> jax.Array:
@@ -884,7 +888,7 @@ class _Backtrack:
     def counters(self) -> dict:
         theta = np.full((self.n, 0), np.nan) if self.theta is None else self.theta.copy()
         return {"guard_theta": theta, "guard_logp": self.logp.copy(),
-                "guard_scale": self.scale.copy()}
+                "guard_peak": self.peak.copy(), "guard_scale": self.scale.copy()}
 
     def restore(self, counters: dict) -> None:
         if "guard_scale" not in counters:
@@ -893,16 +897,18 @@ class _Backtrack:
         theta = np.array(counters["guard_theta"], dtype=float)
         self.theta = theta if theta.size else None
         self.logp = np.array(counters["guard_logp"], dtype=float)
+        self.peak = np.array(counters.get("guard_peak", self.logp), dtype=float)
         self.scale = np.array(counters["guard_scale"], dtype=float)
 
     def __call__(self, before, after, info: StepInfo, phase: int):
         """(state after the guard, particles taken back, (n, d) steps or None if unchanged).
 
         `before` stepped to `after`. In SVGD a fall counts beyond max(1, d/2)
-        nats, the depth of a d-dimensional Gaussian's typical set below its
-        mode, so the repulsion may still spread particles over a mode but not
-        throw them out of it. In SGD nothing is taken back; the best point
-        each particle visits is kept for `best`.
+        nats below the particle's peak, the depth of a d-dimensional
+        Gaussian's typical set below its mode, so the repulsion may still
+        spread particles over a mode but not throw them out of it. In SGD
+        nothing is taken back; the best point each particle visits is kept
+        for `best`.
         """
         logp = np.asarray(fetch(info.guard_logdensity), dtype=float)
         theta_t = np.asarray(fetch(before.particles), dtype=float)
@@ -917,7 +923,7 @@ class _Backtrack:
         margin = max(1.0, theta_t.shape[1] / 2)
         # N.B. a step into a region where log ρ is not finite is a fall too: the
         # particle goes back to its last accepted point instead of freezing there.
-        fell = np.isfinite(self.logp) & (~finite | (logp < self.logp - margin))
+        fell = np.isfinite(self.logp) & (~finite | (logp < np.fmax(self.peak, self.logp) - margin))
         accept = finite & ~fell
         back = np.flatnonzero(fell)
         self.scale[back] = np.maximum(self.scale[back] / 2, self.MIN_SCALE)
@@ -925,6 +931,7 @@ class _Backtrack:
         used = self.scale[scaled]  # the scale of the update just computed from θ_t
         self.theta[accept] = theta_t[accept]
         self.logp[accept] = logp[accept]
+        self.peak[accept] = np.fmax(self.peak[accept], logp[accept])
         self.scale[accept] = np.minimum(self.scale[accept] * self.GROW, 1.0)
         if back.size == 0 and scaled.size == 0:
             return after, 0, None
