@@ -20,6 +20,7 @@ References:
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections import defaultdict
 
@@ -40,6 +41,7 @@ class Screen:
       task_plans: {task plan: count} among the successes.
       groups: groups the particles were drawn from.
       seconds: wall time.
+      cost_min, cost_median: of the candidates' finite costs C (None if none).
     """
 
     candidates: int
@@ -47,6 +49,8 @@ class Screen:
     task_plans: dict[str, int]
     groups: int
     seconds: float
+    cost_min: float | None = None
+    cost_median: float | None = None
 
     def as_dict(self) -> dict:
         """JSON-ready view."""
@@ -121,6 +125,8 @@ def screen_particles(
                 successes[str(decoded.plan[j])] += 1
     for members in groups.values():
         members.sort()
+    costs = np.array([c for members in groups.values() for c, _ in members])
+    costs = costs[np.isfinite(costs)]
     order = sorted(groups, key=lambda k: (not k.startswith("ok:"), groups[k][0][0]))
     chosen: list[int] = []
     depth = 0
@@ -133,10 +139,27 @@ def screen_particles(
         candidates=total, successes=int(sum(successes.values())),
         task_plans=dict(sorted(successes.items(), key=lambda kv: -kv[1])),
         groups=len(groups), seconds=time.perf_counter() - started,
+        cost_min=float(costs.min()) if costs.size else None,
+        cost_median=float(np.median(costs)) if costs.size else None,
     )
     found = {k[len("ok:"):]: candidates[[i for _, i in groups[k]]]
              for k in order if k.startswith("ok:")}
     return Seeded(candidates[np.asarray(chosen)], report, found)
+
+
+def auto_beta(screen: Screen | None) -> float:
+    """β of `SolveConfig.beta` "auto": max(1, ln M / (median − min)) of the screen's costs.
+
+    With β the best of M candidates stands at least ln M nats above the
+    typical one in the log posterior −β·C: the odds a region of 1/M of the
+    box needs to outweigh the rest. 1 without a screen or a spread of costs.
+    """
+    if screen is None or screen.cost_min is None or screen.cost_median is None:
+        return 1.0
+    spread = screen.cost_median - screen.cost_min
+    if not spread > 0:
+        return 1.0
+    return max(1.0, math.log(screen.candidates) / spread)
 
 
 class Redraw:

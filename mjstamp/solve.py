@@ -194,6 +194,7 @@ class SolveResult:
                 for r in self.rows
             ],
             "robustness": self._robustness_summary(),
+            "beta": self.problem.beta,
             "robust_planning": None if self.problem.robust is None
             else self.problem.robust.describe(),
             "plans": self._plans(),
@@ -338,6 +339,7 @@ def problem_jit(problem: Problem):
     grad = dataclasses.asdict(problem.scene.grad_options)
     # N.B. robust planning's draws are constants of the trace: they are part of the key.
     robust = "" if problem.robust is None else f" robust={problem.robust.key()}"
+    robust += "" if problem.beta == 1 else f" beta={problem.beta!r}"
 
     def jit(fn, name: str, *example):
         # N.B. the label (the name's first word) names the function in compile reports.
@@ -590,6 +592,11 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     evaluate = _Evaluator(problem, theta0_np)
     if calibration is not None:
         report.update(_check_mjx(problem, evaluate, theta0_np, calibration, cfg, say))
+    beta = seeding.auto_beta(screen) if cfg.beta == "auto" else float(cfg.beta)
+    if beta != 1:
+        problem = problem.with_beta(beta)
+        say(f"posterior log ρ = −β·C with β = {beta:.3g}"
+            + (" (auto: from the screen's costs)" if cfg.beta == "auto" else ""))
     if cfg.robust:
         problem = problem.with_robust(cfg.robust, seed, cfg.robust_cvar)
         say(f"robust planning: every particle in {cfg.robust} draws of the uncertain physics"

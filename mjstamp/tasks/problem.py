@@ -22,6 +22,7 @@ References:
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -129,6 +130,8 @@ class Problem:
         (`scenes.uncertainty.Batch`): the log posterior is then minus the
         expected cost (or its CVaR) over K perturbed MJX rollouts per particle
         (`with_robust`).
+      beta: inverse temperature of the log posterior, log ρ = −β·C
+        (`with_beta`); `cost_total` stays C.
     """
 
     name: str
@@ -153,6 +156,7 @@ class Problem:
     uncertain: tuple = ()
     uncertain_declared: bool = False
     robust: Any = None
+    beta: float = 1.0
 
     # Layout of θ ---------------------------------------------------------------
 
@@ -218,6 +222,12 @@ class Problem:
             return dataclasses.replace(self, robust=None)
         draws = uncertainty.batch(self.scene.m_grad, self.uncertain, samples, seed, cvar)
         return dataclasses.replace(self, robust=draws)
+
+    def with_beta(self, beta: float) -> Problem:
+        """The problem whose log posterior is −β·C (β > 0; 1: as declared)."""
+        if not (math.isfinite(beta) and beta > 0):
+            raise ValueError(f"beta must be a finite number > 0; got {beta!r}")
+        return dataclasses.replace(self, beta=float(beta))
 
     def distance_fn(self, g1: int, g2: int) -> Callable:
         """Signed distance function of a geom pair (see scenes.distance), memoised."""
@@ -357,7 +367,7 @@ class Problem:
         if self.robust is not None:
             return self._robust_log_posterior(theta, hard)
         r, values = self.evaluate(theta, hard=hard)
-        return -self.cost_total(values), self.features(r)
+        return -self.beta * self.cost_total(values), self.features(r)
 
     def _robust_log_posterior(self, theta, hard: bool):
         """Minus the expected cost (or CVaR) over the K draws of `robust`, and ψ averaged."""
@@ -380,10 +390,10 @@ class Problem:
         if worst < k:
             cost = jnp.sort(cost, axis=1)[:, k - worst:]
         features = self.features(r).reshape(n, k, -1).mean(axis=1)
-        return -cost.mean(axis=1), features
+        return -self.beta * cost.mean(axis=1), features
 
     def logdensity(self, theta) -> tuple[jax.Array, jax.Array]:
-        """The log posterior log ρ(θ | O = 1) (n,) = −C(θ) at Γ̃(θ), and ψ (n, f), from one rollout.
+        """The log posterior log ρ(θ | O = 1) (n,) = −β·C(θ) at Γ̃(θ), and ψ (n, f): one rollout.
 
         References:
           STAMP eq. (6)-(8).
