@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mjstamp import plans, tasks
+from mjstamp import plans, seeding, tasks
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
@@ -117,6 +117,9 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
     summary = result.summary()
     assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)"}
     assert summary["particles"] == 8 and summary["task"] == "tiny"
+    # β "auto" from the screen's costs, and the log posterior STAMP sampled used it.
+    assert summary["beta"] == seeding.auto_beta(seeding.Screen(**summary["screen"]))
+    assert result.problem.beta == summary["beta"]
     rescue = summary["rescue"]  # the stall rescue's report: re-draws, task plans before/after
     assert rescue["redraws"] == int(result.stamp.rescued.sum())
     assert [sum(c.values()) for c in rescue["task_plan_counts"].values()] == [8, 8]
@@ -263,6 +266,32 @@ def test_composed_log_posterior_gradient_matches_finite_differences(tiny_task):
         fd[:, j] = (np.asarray(logp(theta + step)) - np.asarray(logp(theta - step))) / (2 * eps)
     assert np.all(np.isfinite(grad)) and np.abs(grad).max() > 1e-3
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-7)
+
+
+def test_with_beta_scales_the_log_posterior_and_its_trace_key(tiny_task, monkeypatch):
+    import jax
+    import jax.numpy as jnp
+
+    from mjstamp import solve as solve_mod
+    from mjstamp.solve import problem_jit
+
+    problem = tiny_task(horizon=30).build()
+    hot = problem.with_beta(3.0)
+    theta = jnp.asarray([[-1.2, 0.9], [0.4, -0.8], [1.5, 0.3]])
+    base = np.asarray(jax.jit(lambda th: problem.logdensity(th)[0])(theta))
+    scaled = np.asarray(jax.jit(lambda th: hot.logdensity(th)[0])(theta))
+    assert np.all(base < 0)
+    np.testing.assert_allclose(scaled, 3.0 * base, rtol=1e-12)
+    assert problem.beta == 1.0 and hot.with_beta(1.0).beta == 1.0
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="beta"):
+            problem.with_beta(bad)
+    keys = []
+    monkeypatch.setattr(solve_mod, "cached_jit",
+                        lambda fn, key, *example, label=None: keys.append(key))
+    for p in (problem, hot, problem.with_beta(1.0)):
+        problem_jit(p)(lambda t: t, "probe", np.zeros(2))
+    assert keys[0] == keys[2] != keys[1]  # β is a constant of the trace: part of its key
 
 
 def test_fingerprint_follows_the_declaration(tiny_task):
