@@ -84,8 +84,9 @@ class SolveConfig:
         not finite is frozen for the iteration and left out of the kernel of
         the others; after this many such iterations in a row (>= 1; 0: never)
         it is re-drawn (see `rescue_near`) (`svgd.StampConfig.nonfinite_redraw`).
-      backtrack: in SVGD, take back a step that lowers a particle's log
-        density by more than max(1, d/2) nats and halve that particle's step;
+      backtrack: in SVGD, take back a step that leaves a particle's log
+        density more than max(1, d/2) nats below the highest it held in the
+        phase and halve that particle's step;
         in SGD, end each particle at the best point it visited
         (`svgd.StampConfig.backtrack`); False: every optimizer update as given
         and the last iterate returned (Algorithm 1 as written).

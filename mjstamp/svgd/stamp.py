@@ -113,10 +113,11 @@ class StampConfig:
         phases); after M consecutive such iterations it is re-drawn by
         `redraw` when one is given (and its optimizer moments zeroed), else it
         stays frozen.
-      backtrack: True: in SVGD, a step that lowers a particle's log density
-        by more than max(1, d/2) nats is taken back (in discrete SVGD the
-        target at the decoded plan, log p(Γ(θ)), is the one guarded): at its
-        next iteration the particle returns to where it was, its step scale
+      backtrack: True: in SVGD, a step that leaves a particle's log density
+        more than max(1, d/2) nats below its peak in the phase is taken back
+        (in discrete SVGD the target at the decoded plan, log p(Γ(θ)), is the
+        one guarded): at its next iteration the particle returns to its last
+        accepted point, its step scale
         halves (down to 2^-10) and its optimizer moments are zeroed; an
         accepted step multiplies the scale by 1.25, up to 1, and scales the
         particle's next optimizer update. Adam's per-coordinate normalisation
