@@ -337,13 +337,13 @@ def problem_jit(problem: Problem):
     re-run of a script or notebook skips tracing, and any change traces anew.
     """
     grad = dataclasses.asdict(problem.scene.grad_options)
-    # N.B. robust planning's draws are constants of the trace: they are part of the key.
-    robust = "" if problem.robust is None else f" robust={problem.robust.key()}"
-    robust += "" if problem.beta == 1 else f" beta={problem.beta!r}"
+    # N.B. robust planning's draws and β are constants of the trace: part of the key.
+    consts = "" if problem.robust is None else f" robust={problem.robust.key()}"
+    consts += "" if problem.beta == 1 else f" beta={problem.beta!r}"
 
     def jit(fn, name: str, *example):
         # N.B. the label (the name's first word) names the function in compile reports.
-        return cached_jit(fn, f"problem={problem.fingerprint} grad={grad}{robust} {name}",
+        return cached_jit(fn, f"problem={problem.fingerprint} grad={grad}{consts} {name}",
                           *example, label=name.split()[0])
 
     return jit
