@@ -117,8 +117,8 @@ class StampConfig:
         more than max(1, d/2) nats below its peak in the phase is taken back
         (in discrete SVGD the target at the decoded plan, log p(Γ(θ)), is the
         one guarded): at its next iteration the particle returns to its last
-        accepted point, its step scale
-        halves (down to 2^-10) and its optimizer moments are zeroed; an
+        accepted point, its step scale halves (down to 2^-10) and its
+        optimizer moments are zeroed; an
         accepted step multiplies the scale by 1.25, up to 1, and scales the
         particle's next optimizer update. Adam's per-coordinate normalisation
         makes its first step the full learning rate whatever the gradient,
@@ -849,8 +849,8 @@ class _Backtrack:
     outcome is known one iteration later: at iteration t, log ρ(θ_t) is
     compared with the highest log ρ the particle has held in the phase (its
     peak; comparing with the last accepted point instead would let small
-    falls add up without bound). Where it fell,
-    the particle goes back to that point (the update just computed from θ_t
+    falls add up without bound). Where it fell, the particle goes back to
+    its last accepted point (the update just computed from θ_t
     is dropped), its scale halves and its optimizer rows are zeroed; where it
     did not, θ_t is accepted and the update from it is scaled. Particles whose
     log density is not finite are left to the non-finite handling.
