@@ -118,11 +118,11 @@ class StampConfig:
         (in discrete SVGD the target at the decoded plan, log p(Γ(θ)), is the
         one guarded): at its next iteration the particle returns to its last
         accepted point, its step scale halves (down to 2^-10) and its
-        optimizer moments are zeroed; an
-        accepted step multiplies the scale by 1.25, up to 1, and scales the
-        particle's next optimizer update. Adam's per-coordinate normalisation
-        makes its first step the full learning rate whatever the gradient,
-        which throws particles out of valleys narrower than that step. In SGD
+        optimizer moments are zeroed; an accepted step multiplies the scale by
+        1.25, up to 1, and scales the particle's next optimizer update.
+        Adam's per-coordinate normalisation makes its first step the full
+        learning rate whatever the gradient, which throws particles out of
+        valleys narrower than that step. In SGD
         the optimizer runs free and each particle ends at the best point it
         visited (taking steps back there shrank them until the convergence
         test ended SGD early: pushing K = 2 ended with 53% of particles
@@ -924,7 +924,9 @@ class _Backtrack:
         margin = max(1.0, theta_t.shape[1] / 2)
         # N.B. a step into a region where log ρ is not finite is a fall too: the
         # particle goes back to its last accepted point instead of freezing there.
-        fell = np.isfinite(self.logp) & (~finite | (logp < np.fmax(self.peak, self.logp) - margin))
+        # N.B. in SVGD peak >= logp wherever logp is finite: every accept raises
+        # it, and both are reset and forgotten together (SGD leaves peak alone).
+        fell = np.isfinite(self.logp) & (~finite | (logp < self.peak - margin))
         accept = finite & ~fell
         back = np.flatnonzero(fell)
         self.scale[back] = np.maximum(self.scale[back] / 2, self.MIN_SCALE)
