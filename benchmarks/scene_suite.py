@@ -138,7 +138,7 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
         # Beyond the required fields.
         "us_per_particle_step": fidelity.get("us_per_particle_step"),
         "iterations": fidelity.get("iterations"),
-        "beta": summary.get("beta"),
+        "cost_scale": summary.get("cost_scale"),
         "ls_iterations": fidelity.get("ls_iterations"),
         "verified_fraction": verified / returned if returned else None,
         "found": sorted(found),

@@ -187,6 +187,11 @@ def _parse_value(key: str, text: str, default, annotation: str):
         raise MjstampError(f"--set {key}={text!r}: expected true or false")
     if default is None and text.strip().lower() == "none":
         return None
+    if isinstance(default, str) and "float" in annotation:  # a number, or a word ("auto")
+        try:
+            return float(text)
+        except ValueError:
+            return text  # N.B. SolveConfig names the valid words
     try:
         return kind(text)
     except ValueError:

@@ -102,8 +102,9 @@ class SolveConfig:
         the nominal model. `mjstamp solve --robust` sets 8.
       robust_cvar: with `robust`, the share of the worst draws whose mean cost
         is minimised (CVaR at that level), in (0, 1]; 1: the expected cost.
-      beta: inverse temperature of the posterior STAMP samples, log ρ = −β·C
-        (and β·log p(Γ(θ)) for discrete SVGD's target): a number > 0, or
+      cost_scale: β, the inverse temperature of the posterior STAMP samples,
+        log ρ = −β·C (and β·log p(Γ(θ)) for discrete SVGD's target; named
+        apart from the soft indicators' β of `Task.contact`): a number > 0, or
         "auto": β = max(1, ln M / (median − min)) over the costs of the M
         candidates of the seeding screen, so the best candidate stands at least
         ln M nats above the typical one. Costs written in metres (a distance
@@ -146,7 +147,7 @@ class SolveConfig:
     robustness_samples: int = 32
     robust: int = 0
     robust_cvar: float = 1.0
-    beta: float | str = "auto"
+    cost_scale: float | str = "auto"
     devices: int | None = None
 
     def __post_init__(self):
@@ -192,10 +193,12 @@ class SolveConfig:
         if (isinstance(near, bool) or not isinstance(near, numbers.Real)
                 or not 0 <= near <= 1):
             raise MjstampError(f"solve setting rescue_near={near!r} must be a number in [0, 1]")
-        beta = self.beta
-        if beta != "auto" and (isinstance(beta, (bool, str)) or not isinstance(beta, numbers.Real)
-                               or not (math.isfinite(beta) and beta > 0)):
-            raise MjstampError(f"solve setting beta={beta!r} must be a number > 0 or 'auto'")
+        scale = self.cost_scale
+        if scale != "auto" and (isinstance(scale, (bool, str))
+                                or not isinstance(scale, numbers.Real)
+                                or not (math.isfinite(scale) and scale > 0)):
+            raise MjstampError(
+                f"solve setting cost_scale={scale!r} must be a number > 0 or 'auto'")
         if self.jacobian not in ("auto", "fwd", "rev"):
             raise MjstampError(
                 f"solve setting jacobian={self.jacobian!r} is not valid; valid: auto, fwd, rev"

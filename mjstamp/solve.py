@@ -194,7 +194,7 @@ class SolveResult:
                 for r in self.rows
             ],
             "robustness": self._robustness_summary(),
-            "beta": self.problem.beta,
+            "cost_scale": self.problem.cost_scale,
             "robust_planning": None if self.problem.robust is None
             else self.problem.robust.describe(),
             "plans": self._plans(),
@@ -337,9 +337,9 @@ def problem_jit(problem: Problem):
     re-run of a script or notebook skips tracing, and any change traces anew.
     """
     grad = dataclasses.asdict(problem.scene.grad_options)
-    # N.B. robust planning's draws and β are constants of the trace: part of the key.
+    # N.B. robust planning's draws and the cost scale are constants of the trace: part of the key.
     consts = "" if problem.robust is None else f" robust={problem.robust.key()}"
-    consts += "" if problem.beta == 1 else f" beta={problem.beta!r}"
+    consts += "" if problem.cost_scale == 1 else f" cost_scale={problem.cost_scale!r}"
 
     def jit(fn, name: str, *example):
         # N.B. the label (the name's first word) names the function in compile reports.
@@ -592,11 +592,12 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     evaluate = _Evaluator(problem, theta0_np)
     if calibration is not None:
         report.update(_check_mjx(problem, evaluate, theta0_np, calibration, cfg, say))
-    beta = seeding.auto_beta(screen) if cfg.beta == "auto" else float(cfg.beta)
-    if beta != 1:
-        problem = problem.with_beta(beta)
-        say(f"posterior log ρ = −β·C with β = {beta:.3g}"
-            + (" (auto: from the screen's costs)" if cfg.beta == "auto" else ""))
+    auto = cfg.cost_scale == "auto"
+    scale = seeding.auto_cost_scale(screen) if auto else float(cfg.cost_scale)
+    if scale != 1:
+        problem = problem.with_cost_scale(scale)
+        say(f"posterior log ρ = −β·C with cost_scale β = {scale:.3g}"
+            + (" (auto: from the screen's costs)" if auto else ""))
     if cfg.robust:
         problem = problem.with_robust(cfg.robust, seed, cfg.robust_cvar)
         say(f"robust planning: every particle in {cfg.robust} draws of the uncertain physics"

@@ -102,11 +102,11 @@ def test_solve_config_names_unknown_and_bad_settings():
     assert SolveConfig.from_dict({"horizon": 5}, ignore={"horizon": 5}) == SolveConfig()
     for bad in ({"particles": 1}, {"svgd_step": 0}, {"repair": "yes"}, {"jacobian": "x"},
                 {"svgd_max_iters": 2.5}, {"fidelity_tolerance": -1.0}, {"rescue_near": 1.5},
-                {"rescue_near": float("nan")}, {"rescue_near": True}, {"beta": 0},
-                {"beta": "hot"}, {"beta": True}, {"beta": float("inf")}):
+                {"rescue_near": float("nan")}, {"rescue_near": True}, {"cost_scale": 0},
+                {"cost_scale": "hot"}, {"cost_scale": True}, {"cost_scale": float("inf")}):
         with pytest.raises(MjstampError, match=next(iter(bad))):
             SolveConfig.from_dict(bad)
-    assert SolveConfig(beta=2.5).beta == 2.5 and SolveConfig().beta == "auto"
+    assert SolveConfig(cost_scale=2.5).cost_scale == 2.5 and SolveConfig().cost_scale == "auto"
     # Caps a user would accept, not 1000 + 1000.
     assert SolveConfig().svgd_max_iters + SolveConfig().sgd_max_iters <= 200
 

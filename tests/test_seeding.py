@@ -80,24 +80,24 @@ def test_screen_particles_hands_back_its_successes_by_task_plan(tiny_task):
         assert all(decoded.ok) and set(decoded.plan) == {plan}
 
 
-def test_auto_beta_sharpens_a_flat_posterior_and_leaves_a_steep_one():
+def test_auto_cost_scale_sharpens_a_flat_posterior_and_leaves_a_steep_one():
     def screen(low, median, candidates=8192):
         return seeding.Screen(candidates, 0, {}, 1, 0.0, cost_min=low, cost_median=median)
 
     # Costs in metres: the median candidate 1 above the best -> ln M nats apart.
-    assert seeding.auto_beta(screen(0.2, 1.2)) == pytest.approx(math.log(8192))
-    assert seeding.auto_beta(screen(5.0, 153.0)) == 1.0  # steep already: as declared
+    assert seeding.auto_cost_scale(screen(0.2, 1.2)) == pytest.approx(math.log(8192))
+    assert seeding.auto_cost_scale(screen(5.0, 153.0)) == 1.0  # steep already: as declared
     for flat in (screen(1.0, 1.0), screen(None, None), None):  # no spread, no screen
-        assert seeding.auto_beta(flat) == 1.0
+        assert seeding.auto_cost_scale(flat) == 1.0
 
 
-def test_auto_beta_makes_the_posterior_independent_of_the_cost_units(tiny_task):
+def test_auto_cost_scale_makes_the_posterior_independent_of_the_cost_units(tiny_task):
     """β·C is the same posterior whether the goal cost is weighted 0.01 or 0.02."""
     key = jax.random.key(3)
     betas, spreads = {}, {}
     for weight in (0.01, 0.02):
         report = seeding.screen_particles(tiny_task(weight=weight), key, 8, screen=32).screen
-        betas[weight] = seeding.auto_beta(report)
+        betas[weight] = seeding.auto_cost_scale(report)
         spreads[weight] = report.cost_median - report.cost_min
     assert betas[0.01] > 1 and betas[0.01] == pytest.approx(2 * betas[0.02], rel=1e-6)
     assert betas[0.01] * spreads[0.01] == pytest.approx(math.log(256), rel=1e-9)

@@ -44,6 +44,23 @@ def test_registry_errors():
         tasks.load("billiards", bogus=1)
 
 
+def test_a_task_setting_named_like_a_solve_setting_is_refused(monkeypatch):
+    """An override could not say which of the two it meant (billiards' β did once)."""
+    from mjstamp.config import SolveConfig
+
+    tasks.names()  # the built-in tasks registered before the registry is copied
+    monkeypatch.setattr(tasks, "_REGISTRY", dict(tasks._REGISTRY))
+    tasks.register("clash", lambda: {"particles": 3, "speed": 1.0})(lambda settings: None)
+    with pytest.raises(MjstampError) as e:
+        tasks.load("clash")
+    msg = str(e.value)
+    assert "'clash'" in msg and "'particles'" in msg and "solve setting" in msg
+    assert "\n" not in msg
+    for name in tasks.names():
+        if name != "clash":
+            assert not set(tasks.default_config(name)) & set(SolveConfig.fields()), name
+
+
 @pytest.fixture(scope="module")
 def billiards_task():
     return tasks.load("billiards")[0]
@@ -118,8 +135,8 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
     assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)"}
     assert summary["particles"] == 8 and summary["task"] == "tiny"
     # β "auto" from the screen's costs, and the log posterior STAMP sampled used it.
-    assert summary["beta"] == seeding.auto_beta(seeding.Screen(**summary["screen"]))
-    assert result.problem.beta == summary["beta"]
+    assert summary["cost_scale"] == seeding.auto_cost_scale(seeding.Screen(**summary["screen"]))
+    assert result.problem.cost_scale == summary["cost_scale"]
     rescue = summary["rescue"]  # the stall rescue's report: re-draws, task plans before/after
     assert rescue["redraws"] == int(result.stamp.rescued.sum())
     assert [sum(c.values()) for c in rescue["task_plan_counts"].values()] == [8, 8]
@@ -268,7 +285,7 @@ def test_composed_log_posterior_gradient_matches_finite_differences(tiny_task):
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-7)
 
 
-def test_with_beta_scales_the_log_posterior_and_its_trace_key(tiny_task, monkeypatch):
+def test_with_cost_scale_scales_the_log_posterior_and_its_trace_key(tiny_task, monkeypatch):
     import jax
     import jax.numpy as jnp
 
@@ -276,20 +293,20 @@ def test_with_beta_scales_the_log_posterior_and_its_trace_key(tiny_task, monkeyp
     from mjstamp.solve import problem_jit
 
     problem = tiny_task(horizon=30).build()
-    hot = problem.with_beta(3.0)
+    hot = problem.with_cost_scale(3.0)
     theta = jnp.asarray([[-1.2, 0.9], [0.4, -0.8], [1.5, 0.3]])
     base = np.asarray(jax.jit(lambda th: problem.logdensity(th)[0])(theta))
     scaled = np.asarray(jax.jit(lambda th: hot.logdensity(th)[0])(theta))
     assert np.all(base < 0)
     np.testing.assert_allclose(scaled, 3.0 * base, rtol=1e-12)
-    assert problem.beta == 1.0 and hot.with_beta(1.0).beta == 1.0
+    assert problem.cost_scale == 1.0 and hot.with_cost_scale(1.0).cost_scale == 1.0
     for bad in (0.0, -1.0, float("nan")):
-        with pytest.raises(ValueError, match="beta"):
-            problem.with_beta(bad)
+        with pytest.raises(ValueError, match="cost_scale"):
+            problem.with_cost_scale(bad)
     keys = []
     monkeypatch.setattr(solve_mod, "cached_jit",
                         lambda fn, key, *example, label=None: keys.append(key))
-    for p in (problem, hot, problem.with_beta(1.0)):
+    for p in (problem, hot, problem.with_cost_scale(1.0)):
         problem_jit(p)(lambda t: t, "probe", np.zeros(2))
     assert keys[0] == keys[2] != keys[1]  # β is a constant of the trace: part of its key
 

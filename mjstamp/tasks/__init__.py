@@ -145,11 +145,19 @@ def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
     Each override is a task setting or a solve setting (`SolveConfig` field).
 
     Raises:
-      MjstampError: an unknown task or setting (naming both kinds of valid keys).
+      MjstampError: an unknown task or setting (naming both kinds of valid keys),
+        or a task setting named like a solve setting (an override could not
+        say which it meant).
     """
     entry = _entry(name)
     settings = entry.default_config()
     solve_keys = SolveConfig.fields()
+    shadowed = sorted(set(settings) & set(solve_keys))
+    if shadowed:
+        raise MjstampError(
+            f"task {name!r}: its setting {shadowed[0]!r} has the name of a solve setting; "
+            f"rename it (solve settings: {valid_list(solve_keys)})"
+        )
     unknown = sorted(set(overrides) - set(settings) - set(solve_keys))
     if unknown:
         raise MjstampError(

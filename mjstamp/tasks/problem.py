@@ -130,8 +130,8 @@ class Problem:
         (`scenes.uncertainty.Batch`): the log posterior is then minus the
         expected cost (or its CVaR) over K perturbed MJX rollouts per particle
         (`with_robust`).
-      beta: inverse temperature of the log posterior, log ρ = −β·C
-        (`with_beta`); `cost_total` stays C.
+      cost_scale: β, the inverse temperature of the log posterior,
+        log ρ = −β·C (`with_cost_scale`); `cost_total` stays C.
     """
 
     name: str
@@ -156,7 +156,7 @@ class Problem:
     uncertain: tuple = ()
     uncertain_declared: bool = False
     robust: Any = None
-    beta: float = 1.0
+    cost_scale: float = 1.0
 
     # Layout of θ ---------------------------------------------------------------
 
@@ -223,11 +223,11 @@ class Problem:
         draws = uncertainty.batch(self.scene.m_grad, self.uncertain, samples, seed, cvar)
         return dataclasses.replace(self, robust=draws)
 
-    def with_beta(self, beta: float) -> Problem:
-        """The problem whose log posterior is −β·C (β > 0; 1: as declared)."""
-        if not (math.isfinite(beta) and beta > 0):
-            raise ValueError(f"beta must be a finite number > 0; got {beta!r}")
-        return dataclasses.replace(self, beta=float(beta))
+    def with_cost_scale(self, scale: float) -> Problem:
+        """The problem whose log posterior is −β·C with β = `scale` (> 0; 1: as declared)."""
+        if not (math.isfinite(scale) and scale > 0):
+            raise ValueError(f"cost_scale must be a finite number > 0; got {scale!r}")
+        return dataclasses.replace(self, cost_scale=float(scale))
 
     def distance_fn(self, g1: int, g2: int) -> Callable:
         """Signed distance function of a geom pair (see scenes.distance), memoised."""
@@ -367,7 +367,7 @@ class Problem:
         if self.robust is not None:
             return self._robust_log_posterior(theta, hard)
         r, values = self.evaluate(theta, hard=hard)
-        return -self.beta * self.cost_total(values), self.features(r)
+        return -self.cost_scale * self.cost_total(values), self.features(r)
 
     def _robust_log_posterior(self, theta, hard: bool):
         """Minus the expected cost (or CVaR) over the K draws of `robust`, and ψ averaged."""
@@ -390,7 +390,7 @@ class Problem:
         if worst < k:
             cost = jnp.sort(cost, axis=1)[:, k - worst:]
         features = self.features(r).reshape(n, k, -1).mean(axis=1)
-        return -self.beta * cost.mean(axis=1), features
+        return -self.cost_scale * cost.mean(axis=1), features
 
     def logdensity(self, theta) -> tuple[jax.Array, jax.Array]:
         """The log posterior log ρ(θ | O = 1) (n,) = −β·C(θ) at Γ̃(θ), and ψ (n, f): one rollout.
