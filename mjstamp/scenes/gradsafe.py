@@ -219,8 +219,19 @@ _CONSTRAINT_EDITS: dict[str, list[tuple[str, str]]] = {
 }
 
 
-def _rewrite(module, qualname: str, edits: list[tuple[str, str]]) -> Callable:
-    """Returns a copy of ``module.<qualname>`` with textual edits applied."""
+def rewrite(module, qualname: str, edits: list[tuple[str, str]], *,
+            extra: dict[str, object] | None = None) -> Callable:
+    """Returns a copy of ``module.<qualname>`` with textual edits applied.
+
+    Args:
+      module: the module that defines the function.
+      qualname: its name there ("solve", "_LSPoint.create").
+      edits: (old, new) source texts; each old must occur exactly once.
+      extra: names the new source uses, added to the module's globals.
+
+    Raises:
+      RuntimeError: an old text is not found exactly once (MJX changed).
+    """
     owner, _, name = qualname.rpartition(".")
     holder = getattr(module, owner) if owner else module
     fn = inspect.unwrap(getattr(holder, name))
@@ -242,6 +253,8 @@ def _rewrite(module, qualname: str, edits: list[tuple[str, str]]) -> Callable:
     glb = module.__dict__
     glb.setdefault("_gs_safe_div", safe_div)
     glb.setdefault("_gs_safe_sqrt", safe_sqrt)
+    for k, v in (extra or {}).items():
+        glb.setdefault(k, v)
     loc: dict[str, object] = {}
     exec(compile(src, f"<gradsafe:{qualname}>", "exec"), glb, loc)  # pylint: disable=exec-used
     return loc[name]
@@ -340,8 +353,8 @@ def patch_mjx() -> None:
     from mujoco.mjx._src import constraint, solver  # pylint: disable=g-import-not-at-top
 
     # Build everything first so a failed rewrite leaves MJX untouched.
-    new = {q: _rewrite(solver, q, e) for q, e in _EDITS.items()}
-    kbi = _rewrite(constraint, "_kbi", _CONSTRAINT_EDITS["_kbi"])
+    new = {q: rewrite(solver, q, e) for q, e in _EDITS.items()}
+    kbi = rewrite(constraint, "_kbi", _CONSTRAINT_EDITS["_kbi"])
     constraint._kbi = kbi  # pylint: disable=protected-access
     solver._linesearch = new["_linesearch"]  # pylint: disable=protected-access
     solver._update_constraint = new["_update_constraint"]  # pylint: disable=protected-access

@@ -1,0 +1,1 @@
+"""Ports of MuJoCo C's colliders: box_box (stub; being ported)."""

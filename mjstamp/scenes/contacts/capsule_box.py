@@ -1,0 +1,1 @@
+"""Ports of MuJoCo C's colliders: capsule_box (stub; being ported)."""

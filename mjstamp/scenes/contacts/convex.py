@@ -1,0 +1,1 @@
+"""Ports of MuJoCo C's colliders: convex (stub; being ported)."""

@@ -1,0 +1,1 @@
+"""Ports of MuJoCo C's primitive colliders (engine_collision_primitive.c)."""
