@@ -7,9 +7,11 @@ Bad input (an unknown scene, a malformed MJCF, a bad option) prints one line,
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
+import warnings
 
 from mjstamp.errors import MjstampError
 
@@ -122,8 +124,9 @@ def _cmd_check(args) -> int:
     if not 1 <= args.particles <= MAX_PARTICLES:
         raise MjstampError(f"--particles={args.particles} must be in 1..{MAX_PARTICLES}")
     say = (lambda msg: print(f"[check] {msg}", file=sys.stderr)) if not args.quiet else None
+    # N.B. an explicit model is judged as given; otherwise the one a solve would calibrate.
     common = dict(particles=args.particles, seed=args.seed, tolerance=args.tolerance,
-                  progress=say)
+                  progress=say, calibrate=not options)
     if args.scene in tasks.names():
         # A registered task: its own θ, bounds and horizon.
         if args.horizon is not None:
@@ -149,9 +152,14 @@ def _cmd_check(args) -> int:
           f"ls_iterations={report['ls_iterations']})")
     print(f"particles        {report['particles']} x {report['horizon']} steps, "
           f"{report['dim']} coordinates each")
+    if "calibrated" in report and not options:
+        print(f"calibrated       {report['calibrated']['message']}")
+    judged = {"tolerance": "", "none": "",
+              "chaos": f"; within C's own chaos, p95 {report['chaos_p95_m']:.2g} m"}
     print(f"physics          MJX vs MuJoCo C (scene's own solver): divergence median "
           f"{report['physics_divergence_median_m']:.2g} m, p95 "
-          f"{report['physics_divergence_p95_m']:.2g} m (tolerance {report['tolerance_m']:.2g} m)")
+          f"{report['physics_divergence_p95_m']:.2g} m (tolerance {report['tolerance_m']:.2g} m"
+          f"{judged[report['judged_by']]})")
     print(f"non-finite grads {report['nonfinite']} ({report['nonfinite_fraction']:.1%})")
     if report["rel_err_median"] is not None:
         print(f"AD vs FD         scene's own physics: rel err median "
@@ -164,7 +172,7 @@ def _cmd_check(args) -> int:
         return 0
     for problem in report["problems"]:
         print(f"UNHEALTHY: {problem}")
-    if "calibrated" in report:
+    if "calibrated" in report and options:
         cal = report["calibrated"]
         flags = (f"--gradient implicit --iterations {cal['iterations']}"
                  if cal["gradient"] == "implicit" else f"--iterations {cal['iterations']}")
@@ -545,7 +553,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("--horizon", type=int, help="rollout steps (default: the scene's check)")
     check.add_argument("--iterations", type=int,
-                       help="solver iterations of the gradient model (default: 1 unrolled)")
+                       help="solver iterations of the gradient model, judged as given "
+                       "(default: the model solve calibrates on these particles)")
     check.add_argument("--gradient", choices=("unrolled", "implicit"),
                        help="how the solver is differentiated: each of --iterations "
                        "(unrolled), or one Newton step after MJX's own converged loop (implicit)")
@@ -650,6 +659,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 
+@contextlib.contextmanager
+def _warnings_as_lines():
+    """Shows mjstamp's own warnings (`FidelityWarning`) as one 'mjstamp: warning: ...' line."""
+    from mjstamp.errors import FidelityWarning
+
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, FidelityWarning):
+            print(f"mjstamp: warning: {message}", file=sys.stderr, flush=True)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = shown
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `mjstamp` console script."""
     parser = build_parser()
@@ -667,7 +696,8 @@ def main(argv: list[str] | None = None) -> int:
                       devices=_host_devices(getattr(args, "devices", None), processes),
                       strict_devices=getattr(args, "devices", None) != "auto",
                       processes=processes)
-        return args.func(args)
+        with _warnings_as_lines():
+            return args.func(args)
     except MjstampError as e:
         print(f"mjstamp: error: {e}", file=sys.stderr)
         return 2

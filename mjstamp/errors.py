@@ -17,3 +17,10 @@ def valid_list(names, limit: int = 40) -> str:
     if len(names) > limit:
         return ", ".join(names[:limit]) + f", ... ({len(names) - limit} more)"
     return ", ".join(names)
+
+
+class FidelityWarning(UserWarning):
+    """The gradient model parts from the physics plans are verified in (one line).
+
+    The solve goes on: every plan is verified, and repaired, in MuJoCo C.
+    """

@@ -482,6 +482,26 @@ def group(cost: np.ndarray, returned: np.ndarray, predicted: Decoded, verified: 
     return out
 
 
+def _chaos_note(verdict: dict) -> str:
+    """', within the scene's own chaos (...)' when MJX was judged by C's spread."""
+    if verdict.get("judged_by") != "chaos":
+        return ""
+    return (f", over it but within the scene's own chaos: C against itself nudged by 1e-9 m "
+            f"p95 {verdict['chaos_p95_m']:.2g} m")
+
+
+def _parting_note(verdict: dict | None) -> str:
+    """', parting at box-box contacts ('crate'/'ledge')' from a verdict's JSON view."""
+    pairs = ((verdict or {}).get("parting") or {}).get("pairs") or []
+    if not pairs:
+        return ""
+    def named(p):
+        geoms = (repr(g) if g else f"#{i}" for g, i in zip(p["geoms"], p["ids"], strict=True))
+        return f"{'-'.join(p['types'])} {'/'.join(geoms)}"
+
+    return f", parting at contacts of {', '.join(named(p) for p in pairs[:3])}"
+
+
 def _particles_line(summary: dict) -> str:
     """A line 'particles: ...' (verified share, the mean cost per phase, re-draws), or ''."""
     loss = summary.get("loss")
@@ -559,8 +579,10 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
             f"divergence p95 {fid['mjx_divergence_p95_m']:.2g} m"
             + (f" (tolerance {tol:.2g} m" + ("" if fid.get("faithful", True) else
                                              ", NOT faithful: allow_unfaithful")
+               + _chaos_note(fid.get("mjx_final") or {})
                + ("" if fid.get("faithful_at_end", True) else
-                  ", over it at the final particles: their plans are verified in C") + ")"
+                  ", over it at the final particles" + _parting_note(fid.get("mjx_final"))
+                  + ": their plans are verified in C") + ")"
                if tol is not None else "")
         )
     footer += _particles_line(summary) + _robustness_line(robust)

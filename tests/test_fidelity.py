@@ -114,7 +114,7 @@ def test_solve_config_names_unknown_and_bad_settings():
 @pytest.mark.slow
 def test_check_fails_for_one_iteration_on_a_frictional_scene():
     """The check must not call a one-iteration model healthy where it drifts."""
-    report = check_scene(Scene(SLIDE), particles=8, spec=SPEC)
+    report = check_scene(Scene(SLIDE), particles=8, spec=SPEC, calibrate=False)
     assert not report["healthy"] and not report["faithful"]
     assert any("diverges from the scene's own physics" in p for p in report["problems"])
     assert report["calibrated"]["faithful"] and report["calibrated"]["gradient"] == "implicit"
@@ -131,7 +131,7 @@ def test_gradients_through_the_solver_match_the_scene_physics(gradient, iteratio
     and a few particles straddle a contact event, where both are only piecewise.
     """
     scene = Scene(SLIDE, gradient=gradient, iterations=iterations)
-    report = check_scene(scene, particles=8, spec=SPEC)
+    report = check_scene(scene, particles=8, spec=SPEC, calibrate=False)
     assert report["healthy"], report["problems"]
     assert report["nonfinite"] == 0
     assert report["physics_divergence_p95_m"] <= report["tolerance_m"]

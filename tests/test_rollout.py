@@ -84,7 +84,7 @@ def test_shipped_scene_gradients_are_healthy(scene_name, gradient, request):
     scene = request.getfixturevalue(scene_name)
     if gradient == "implicit":
         scene = scene.with_grad_options(gradient="implicit", iterations=scene.m.opt.iterations)
-    report = check_scene(scene, particles=256, seed=0)
+    report = check_scene(scene, particles=256, seed=0, calibrate=False)
     assert report["healthy"], report["problems"]
     assert report["nonfinite"] == 0
     assert report["rel_err_median"] <= 1e-3

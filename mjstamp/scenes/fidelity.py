@@ -341,3 +341,216 @@ def _write(path: Path, result: Calibration) -> None:
         write_atomic(path, lambda f: f.write(payload))
     except OSError:
         pass  # a read-only cache only costs time
+
+
+# What C does to itself: the spread a chaotic scene shows when its initial
+# positions move by a nanometre, against which a gradient model's rounding-level
+# differences are judged where they outgrow the tolerance (pachinko's pegs).
+NUDGE_M = 1e-9
+
+
+def chaos_spread(scene, qpos0: np.ndarray, qvel0: np.ndarray, ctrl: np.ndarray | None = None,
+                 *, horizon: int | None = None, nudge: float = NUDGE_M,
+                 seed: int = 0) -> np.ndarray:
+    """(n,) divergence of MuJoCo C from itself with the initial positions moved by `nudge`.
+
+    Every coordinate of qpos0 moves by ±`nudge` (a random sign each): metres for
+    translations, radians for angles, which MuJoCo renormalises where it is a
+    quaternion's. Both runs use the scene's own solver, as plans are verified.
+
+    Args:
+      scene: a `Scene`.
+      qpos0: (n, nq) initial positions.
+      qvel0: (n, nv) initial velocities.
+      ctrl: (n, T, nu) controls, or None with `horizon`.
+      horizon: T, when `ctrl` is None.
+      nudge: the move, metres (radians).
+      seed: the signs.
+    """
+    qpos0 = np.asarray(qpos0, np.float64)
+    signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=qpos0.shape)
+    a = replay(scene, qpos0, qvel0, ctrl, horizon=horizon, fields=("qpos",))["qpos"]
+    b = replay(scene, qpos0 + nudge * signs, qvel0, ctrl, horizon=horizon,
+               fields=("qpos",))["qpos"]
+    return divergence(tracked_points(scene.m, a), tracked_points(scene.m, b))
+
+
+@dataclasses.dataclass(frozen=True)
+class Parting:
+    """Where MJX rollouts first part from MuJoCo C, and what was in contact there.
+
+    Attributes:
+      particles: particles that parted (divergence above the threshold).
+      steps: (particles,) first step (1-based) at which each parted.
+      pairs: {(geom1, geom2) ids in the model's order: particles whose first
+        parting step had the pair in contact in C}, most frequent first.
+      threshold_m: the difference that counts as parting.
+    """
+
+    particles: int
+    steps: tuple[int, ...]
+    pairs: dict[tuple[int, int], int]
+    threshold_m: float
+
+    def describe(self, m: mujoco.MjModel, *, limit: int = 4) -> str:
+        """"box-box 'paddle'/'bumper' (12 of 16)", the commonest first; '' when none."""
+        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+
+        parts = [f"{contacts.describe_pair(m, g1, g2)} ({k} of {self.particles})"
+                 for (g1, g2), k in list(self.pairs.items())[:limit]]
+        more = len(self.pairs) - limit
+        return ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+
+    def as_dict(self, m: mujoco.MjModel) -> dict:
+        """JSON view: pairs by name and type."""
+        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+
+        return {
+            "particles": self.particles,
+            "first_step_median": float(np.median(self.steps)) if self.steps else None,
+            "threshold_m": self.threshold_m,
+            "pairs": [{**contacts.pair_info(m, g1, g2), "particles": k}
+                      for (g1, g2), k in self.pairs.items()],
+        }
+
+
+def parting(m: mujoco.MjModel, qpos0: np.ndarray, qpos_a: np.ndarray, qpos_c: np.ndarray, *,
+            threshold: float) -> Parting:
+    """The first step at which two rollouts of the same inputs part, and C's contacts there.
+
+    A particle parts at the first step where a tracked point (`tracked_points`)
+    differs by more than `threshold`; the geom pairs in contact in the C
+    rollout at the state before that step and after it are what the step
+    collided (a step's contacts come from the state it starts from).
+
+    Args:
+      m: the scene's model.
+      qpos0: (n, nq) initial positions.
+      qpos_a: (n, T, nq) the gradient model's states after steps 1..T.
+      qpos_c: (n, T, nq) MuJoCo C's.
+      threshold: metres.
+    """
+    x_a = tracked_points(m, np.asarray(qpos_a, np.float64))
+    x_c = tracked_points(m, np.asarray(qpos_c, np.float64))
+    diff = np.abs(x_a - x_c).max(axis=(2, 3))  # (n, T)
+    diff = np.where(np.isfinite(diff), diff, np.inf)
+    parted = np.flatnonzero((diff > threshold).any(axis=1))
+    d = mujoco.MjData(m)
+    counts: dict[tuple[int, int], int] = {}
+    steps = []
+    for i in parted:
+        t = int(np.argmax(diff[i] > threshold))
+        steps.append(t + 1)
+        seen = set()
+        for q in (qpos0[i] if t == 0 else qpos_c[i, t - 1], qpos_c[i, t]):
+            d.qpos[:] = q
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_collision(m, d)
+            seen |= {(int(c.geom1), int(c.geom2)) for c in d.contact[: d.ncon] if not c.exclude}
+        for pair in seen:
+            counts[pair] = counts.get(pair, 0) + 1
+    ranked = dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+    return Parting(len(parted), tuple(steps), ranked, float(threshold))
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """MJX itself against MuJoCo C, judged by the tolerance or by C's own chaos.
+
+    Attributes:
+      median_m, p95_m: MJX's divergence from C.
+      tolerance_m: the fidelity tolerance.
+      chaos_p95_m: C against itself nudged by `NUDGE_M` (None when not needed:
+        MJX was within the tolerance).
+      judged_by: "tolerance" (p95 within it), "chaos" (beyond it, but within
+        C's own spread: the scene amplifies any difference, rounding included)
+        or "none" (beyond both).
+      parting: where the rollouts part and which geom pairs were in contact
+        (None when faithful by either measure).
+      approximate: geom pairs of the model that MJX collides differently from C.
+    """
+
+    median_m: float
+    p95_m: float
+    tolerance_m: float
+    chaos_p95_m: float | None
+    judged_by: str
+    parting: Parting | None
+    approximate: tuple[tuple[int, int], ...]
+
+    @property
+    def faithful(self) -> bool:
+        """Within the tolerance or the chaos spread."""
+        return self.judged_by != "none"
+
+    def message(self, scene_name: str, m: mujoco.MjModel, horizon: int) -> str:
+        """One line: how MJX compares with C and, where it parts, the pairs responsible."""
+        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+
+        head = (f"scene {scene_name!r}: MJX rollouts vs MuJoCo C (scene's own solver) p95 "
+                f"{self.p95_m:.2g} m")
+        if self.judged_by == "tolerance":
+            return f"{head} <= tolerance {self.tolerance_m:.2g} m"
+        chaos = f"C against itself nudged by {NUDGE_M:g} m: p95 {self.chaos_p95_m:.2g} m"
+        if self.judged_by == "chaos":
+            return (f"{head} > tolerance {self.tolerance_m:.2g} m but within the scene's own "
+                    f"chaos ({chaos}): faithful as C is to itself")
+        where = self.parting.describe(m) if self.parting is not None else ""
+        approx = [p for p in self.approximate
+                  if self.parting is not None and p in self.parting.pairs]
+        cause = (f"where MJX collides these pairs differently from C: "
+                 f"{', '.join(contacts.describe_pair(m, *p) for p in approx)}"
+                 if approx else "MJX collides or integrates something differently")
+        return (f"{head} > tolerance {self.tolerance_m:.2g} m and > {chaos}, over {horizon} "
+                f"steps; they part at contacts of {where or 'no geom pair'}; {cause}")
+
+    def as_dict(self, m: mujoco.MjModel) -> dict:
+        """JSON view."""
+        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+
+        return {
+            "median_m": self.median_m, "p95_m": self.p95_m, "tolerance_m": self.tolerance_m,
+            "chaos_p95_m": self.chaos_p95_m, "judged_by": self.judged_by,
+            "faithful": self.faithful,
+            "parting": None if self.parting is None else self.parting.as_dict(m),
+            "approximate_pairs": [contacts.pair_info(m, *p) for p in self.approximate],
+        }
+
+
+def judge(scene, qpos0: np.ndarray, qvel0: np.ndarray, ctrl: np.ndarray | None,
+          qpos_mjx: np.ndarray, qpos_c: np.ndarray, *, tolerance: float,
+          horizon: int | None = None) -> Verdict:
+    """Judges MJX rollouts against C replays of the same inputs (`Verdict`).
+
+    Within the tolerance, nothing more is measured. Beyond it, C is replayed
+    from initial positions nudged by `NUDGE_M` (`chaos_spread`); MJX within
+    that spread is as faithful as C is to itself. Beyond both, `parting`
+    finds the first step at which each particle parts and the geom pairs in
+    contact there, with a threshold of 1e-6 of the scene's size (rounding
+    differences stay near 1e-12 m; a contact computed differently gives 1e-5
+    m or more within a step or two).
+
+    Args:
+      scene: the `Scene`.
+      qpos0: (n, nq) initial positions.
+      qvel0: (n, nv) initial velocities.
+      ctrl: (n, T, nu) controls, or None with `horizon`.
+      qpos_mjx: (n, T, nq) MJX's states after each step.
+      qpos_c: (n, T, nq) C's, with the scene's own solver.
+      tolerance: metres.
+      horizon: T when `ctrl` is None.
+    """
+    from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+
+    m = scene.m
+    div = divergence(tracked_points(m, qpos_mjx), tracked_points(m, qpos_c))
+    median, p95 = float(np.median(div)), float(np.percentile(div, 95))
+    approximate = tuple(contacts.approximate_pairs(m))
+    if p95 <= tolerance:
+        return Verdict(median, p95, tolerance, None, "tolerance", None, approximate)
+    spread = chaos_spread(scene, qpos0, qvel0, ctrl, horizon=horizon)
+    chaos = float(np.percentile(spread, 95))
+    if p95 <= chaos:
+        return Verdict(median, p95, tolerance, chaos, "chaos", None, approximate)
+    where = parting(m, qpos0, qpos_mjx, qpos_c, threshold=1e-6 * scene.length_scale)
+    return Verdict(median, p95, tolerance, chaos, "none", where, approximate)

@@ -17,7 +17,7 @@ import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.parallel import local_device
-from mjstamp.scenes import gradsafe
+from mjstamp.scenes import contacts, gradsafe
 from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.collisions import check_collidable
 from mjstamp.scenes.rollout import build_rollout, cast_floats
@@ -255,6 +255,9 @@ class Scene:
           MjstampError: malformed MJCF, missing file, bad option.
         """
         self.m, self._label = _load_model(source, assets)
+        # N.B. before the check and any trace of mjx.collision: MuJoCo C's own
+        # colliders, ported, replace MJX's where MJX computes other contacts.
+        contacts.patch_collisions()
         check_collidable(self.m, self._label)
         self.name = name or self.m.names[: self.m.names.index(b"\0")].decode() or (
             Path(source).stem if isinstance(source, (str, Path)) else "scene"

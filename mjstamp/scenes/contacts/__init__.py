@@ -24,6 +24,7 @@ the pair's margin (which MJX's do not), to emit contacts within it.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 
 import jax
@@ -32,7 +33,19 @@ import mujoco
 
 from mjstamp.scenes import _mjx  # noqa: F401 - imports mujoco.mjx without its stdout chatter
 
-__all__ = ["PORTED", "collider", "is_patched", "patch_collisions", "table_version", "FAR"]
+__all__ = [
+    "FAR",
+    "MJX_EXACT",
+    "PORTED",
+    "approximate_pairs",
+    "collider",
+    "describe_pair",
+    "is_patched",
+    "mjx_own",
+    "pair_info",
+    "patch_collisions",
+    "table_version",
+]
 
 # Distance of an unused slot: far beyond any margin, finite so that MJX's
 # `(dist - includemargin) * active` stays 0 (inf * 0 is NaN).
@@ -40,9 +53,19 @@ FAR = 1e10
 
 _PATCHED = False
 _VERSION = 0
+_ORIGINAL: dict[tuple[int, int], Callable | None] = {}
 
 # (type1, type2) in mjtGeom order -> collider, filled by the modules below.
 PORTED: dict[tuple[int, int], Callable] = {}
+
+_G = mujoco.mjtGeom
+# Pairs whose MJX 3.17 function gives C's contacts already (tests/test_contacts_primitive.py
+# compares them with C on random poses): MJX's own function stays.
+MJX_EXACT = frozenset({
+    (int(_G.mjGEOM_PLANE), int(_G.mjGEOM_SPHERE)),
+    (int(_G.mjGEOM_PLANE), int(_G.mjGEOM_ELLIPSOID)),
+    (int(_G.mjGEOM_SPHERE), int(_G.mjGEOM_SPHERE)),
+})
 
 
 def collider(ncon: int):
@@ -118,8 +141,10 @@ def patch_collisions() -> None:
           "dist, pos, frame = _mjs_call(func, m, d, key, contact)")],
         extra={"_mjs_call": _call},
     )
+    table = collision_driver._COLLISION_FUNC  # pylint: disable=protected-access
     for pair, fn in PORTED.items():
-        collision_driver._COLLISION_FUNC[pair] = fn  # pylint: disable=protected-access
+        _ORIGINAL[pair] = table.get(pair)
+        table[pair] = fn
     collision_driver.collision = collide
     _patch_mjx_collision(collide)
     _PATCHED = True
@@ -137,6 +162,31 @@ def _patch_mjx_collision(collide) -> None:
             module.collision, "__module__", ""
         ) == "mujoco.mjx._src.collision_driver":
             module.collision = collide
+
+
+@contextlib.contextmanager
+def mjx_own():
+    """Within the block, MJX's own collision functions (for comparisons with the ports).
+
+    N.B. read at trace time, like the table itself: compile inside the block.
+    """
+    global _VERSION
+    patch_collisions()
+    from mujoco.mjx._src import collision_driver  # pylint: disable=g-import-not-at-top
+
+    table = collision_driver._COLLISION_FUNC  # pylint: disable=protected-access
+    ported = {pair: table[pair] for pair in _ORIGINAL}
+    for pair, fn in _ORIGINAL.items():
+        if fn is None:
+            table.pop(pair, None)
+        else:
+            table[pair] = fn
+    _VERSION = -abs(_VERSION) - 1
+    try:
+        yield
+    finally:
+        table.update(ported)
+        _VERSION = -_VERSION
 
 
 def is_patched() -> bool:
@@ -171,4 +221,51 @@ def frame_with_tangent(normal: jax.Array, tangent: jax.Array) -> jax.Array:
     return jnp.stack([normal, b, jnp.cross(normal, b)])
 
 
-_ = mujoco  # the mjtGeom enums are read by the submodules
+def _type_name(t: int) -> str:
+    return mujoco.mjtGeom(int(t)).name.removeprefix("mjGEOM_").lower()
+
+
+def _geom_name(m: mujoco.MjModel, g: int) -> str:
+    name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, int(g))
+    return repr(name) if name else f"#{int(g)}"
+
+
+def describe_pair(m: mujoco.MjModel, g1: int, g2: int) -> str:
+    """"box-box 'paddle'/'bumper'": the types, then the geoms (names, else #ids)."""
+    t1, t2 = int(m.geom_type[g1]), int(m.geom_type[g2])
+    if t1 > t2:
+        g1, g2, t1, t2 = g2, g1, t2, t1
+    return f"{_type_name(t1)}-{_type_name(t2)} {_geom_name(m, g1)}/{_geom_name(m, g2)}"
+
+
+def pair_info(m: mujoco.MjModel, g1: int, g2: int) -> dict:
+    """JSON view of a geom pair: names (None when unnamed), ids and types."""
+    return {
+        "geoms": [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, int(g)) for g in (g1, g2)],
+        "ids": [int(g1), int(g2)],
+        "types": [_type_name(m.geom_type[g]) for g in (g1, g2)],
+    }
+
+
+def is_exact(t1: int, t2: int) -> bool:
+    """Whether the table in force collides this type pair as MuJoCo C does."""
+    from mujoco.mjx._src import collision_driver  # pylint: disable=g-import-not-at-top
+
+    pair = tuple(sorted((int(t1), int(t2))))
+    fn = collision_driver._COLLISION_FUNC.get(pair)  # pylint: disable=protected-access
+    if fn is not None and fn is PORTED.get(pair):
+        return not getattr(fn, "approximate", False)
+    return pair in MJX_EXACT
+
+
+def approximate_pairs(m: mujoco.MjModel) -> list[tuple[int, int]]:
+    """The model's colliding geom pairs (MJX's rule) whose contacts are not C's."""
+    from mujoco.mjx._src import collision_driver  # pylint: disable=g-import-not-at-top
+
+    out = []
+    if m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT:
+        return out
+    for g1, g2, _ in collision_driver.geom_pairs(m):
+        if not is_exact(m.geom_type[g1], m.geom_type[g2]):
+            out.append((int(g1), int(g2)))
+    return out

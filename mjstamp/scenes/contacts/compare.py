@@ -89,10 +89,12 @@ class PairModel:
 
     @property
     def name(self) -> str:
+        """'box-box'."""
         return pair_name(self.t1, self.t2)
 
     @property
     def plane(self) -> bool:
+        """Whether the first geom is a (world) plane."""
         return NAMES[self.t1] == "plane"
 
 
@@ -100,7 +102,8 @@ def pair_model(t1: int, t2: int, *, flags: str = "") -> PairModel:
     """The model of `PairModel` for types t1, t2 (any order).
 
     Args:
-      t1, t2: geom types (mjtGeom).
+      t1: a geom type (mjtGeom).
+      t2: the other.
       flags: extra attributes of <option><flag .../></option>, e.g.
         'multiccd="disable"'.
     """
@@ -267,7 +270,7 @@ def _distance(m, d, qpos) -> float:
 
 
 def _place(m, d, q1, q2, base, direction, target, pm) -> np.ndarray:
-    """qpos with geom 2 at base + s * direction where C's signed distance is `target`."""
+    """The qpos with geom 2 at base + s * direction where C's signed distance is `target`."""
     lo, hi = 0.0, 4.0
     if pm.plane:
         lo = -4.0
@@ -302,7 +305,7 @@ def c_contacts(pm: PairModel, draws: Draws) -> list[np.ndarray]:
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _mjx_collide(xml: str, table_key):
     """Compiled batched MJX collision of the pair model (sizes, margins, qpos vmapped)."""
     m = mujoco.MjModel.from_xml_string(xml)
@@ -366,6 +369,7 @@ class Report:
     mismatch_examples: tuple[int, ...]
 
     def as_dict(self) -> dict:
+        """JSON view."""
         return dataclasses.asdict(self)
 
     def within(self, tol: float) -> bool:
