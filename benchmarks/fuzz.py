@@ -710,6 +710,97 @@ def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, solve: int = 0
     }
 
 
+# Worst difference allowed per field against C: C's analytic routines are ported
+# to rounding; its GJK/EPA pairs (mjc_Convex) stop at its own ccd_tolerance.
+CONTACT_TOL = {"analytic": 1e-9, "ccd": 1e-6}
+_CCD = {"ellipsoid", "mesh"}
+
+
+def _contact_tolerance(pair: str) -> float:
+    a, b = pair.split("-")
+    convex = ({a, b} & _CCD or "cylinder" in (a, b) and {a, b} - {"plane", "sphere"})
+    return CONTACT_TOL["ccd" if convex else "analytic"]
+
+
+def _states(m, rng: np.random.Generator, n: int = 24, steps: int = 60) -> np.ndarray:
+    """(n, nq) states along C rollouts from random velocities: bodies meet and rest."""
+    import mujoco
+
+    d = mujoco.MjData(m)
+    out = []
+    for _ in range(4):
+        mujoco.mj_resetData(m, d)
+        d.qvel[:] = rng.uniform(-2, 2, size=m.nv)
+        for t in range(steps):
+            mujoco.mj_step(m, d)
+            if not np.isfinite(d.qpos).all():
+                break
+            if t % (steps // (n // 4)) == 0:
+                out.append(d.qpos.copy())
+    return np.array(out[:n]).reshape(-1, m.nq)
+
+
+def fuzz_contacts(n: int, *, seed: int = 0, progress=None) -> dict:
+    """Each scene that builds: its contacts in MJX against C's at states along C rollouts.
+
+    Per geom-type pair over all scenes: the states whose number of active
+    contacts differs, and the worst field difference, against `CONTACT_TOL`.
+    Scenes with a geom gap are counted apart (MJX ignores `gap`: it includes
+    contacts up to the margin, C up to margin - gap).
+    """
+    import mujoco
+
+    from mjstamp.scenes import Scene
+    from mjstamp.scenes.contacts import compare
+
+    say = progress or (lambda _msg: None)
+    rng = np.random.default_rng(seed)
+    pairs: dict[str, dict] = {}
+    compared, gapped, t0 = 0, 0, time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, xml in enumerate(mjcf_scenes_n(seed, n)):
+            path = Path(tmp) / f"scene_{i}.xml"
+            path.write_text(xml)
+            if build_scene(path)[0] != "ok":
+                continue
+            m = Scene(path).m_grad  # N.B. its solver is one MJX takes; contacts are the same
+            if m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT or m.nv == 0:
+                continue
+            if (m.geom_gap > 0).any() or (m.npair and (m.pair_gap > 0).any()):
+                gapped += 1
+                continue
+            states = _states(m, rng)
+            if not len(states):
+                continue
+            compared += 1
+            for name, r in compare.compare_states(m, states).items():
+                row = pairs.setdefault(name, {"states": 0, "count_mismatches": 0, "dist": 0.0,
+                                              "pos": 0.0, "frame": 0.0, "examples": []})
+                row["states"] += r.draws
+                row["count_mismatches"] += r.count_mismatches
+                for f in ("dist", "pos", "frame"):
+                    row[f] = max(row[f], getattr(r, f))
+                tol = _contact_tolerance(name)
+                if (r.count_mismatches or max(r.dist, r.pos, r.frame) > tol) and len(
+                        row["examples"]) < 3:
+                    row["examples"].append(i)
+            if (i + 1) % 20 == 0:
+                say(f"contacts: {i + 1}/{n} scenes, {compared} compared")
+    for name, row in pairs.items():
+        row["tolerance"] = _contact_tolerance(name)
+        row["within"] = (row["count_mismatches"] == 0
+                         and max(row["dist"], row["pos"], row["frame"]) <= row["tolerance"])
+    return {"contact_scenes_compared": compared, "contact_scenes_with_gap": gapped,
+            "contact_pairs": dict(sorted(pairs.items())),
+            "contact_mismatched_pairs": sorted(k for k, v in pairs.items() if not v["within"]),
+            "contact_wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def mjcf_scenes_n(seed: int, n: int):
+    """The first n scenes of seed `seed` (`scene_mjcf`)."""
+    return (scene_mjcf(seed, i) for i in range(n))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Runs the fuzz sections and prints their merged report; exit 1 on any crash."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -721,6 +812,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--solve", type=int, default=0, metavar="K",
                         help="of the scenes that build, how many (the first K with a joint) "
                              "go through a tiny solve in-process")
+    parser.add_argument("--contacts", type=int, default=0, metavar="N",
+                        help="of the scenes, how many (that build) compare their contacts "
+                             "in MJX with MuJoCo C's at states along C rollouts")
     parser.add_argument("--cli", type=int, default=0, metavar="N",
                         help="random command lines to try (benchmarks/fuzz_cli.py)")
     parser.add_argument("--cli-subprocesses", type=int, default=20, metavar="K",
@@ -747,6 +841,8 @@ def main(argv: list[str] | None = None) -> int:
     report.update(fuzz_scenes(args.scenes, check=min(args.check, args.scenes),
                               subprocesses=args.subprocesses, solve=args.solve,
                               seed=args.seed, progress=say))
+    if args.contacts:
+        report.update(fuzz_contacts(args.contacts, seed=args.seed, progress=say))
     if args.cli:
         from benchmarks.fuzz_cli import fuzz_cli  # noqa: PLC0415
 

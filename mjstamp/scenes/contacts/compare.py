@@ -378,8 +378,15 @@ class Report:
                 and max(self.dist, self.pos, self.normal, self.frame) <= tol)
 
 
-def compare(pm: PairModel, draws: Draws, c: list[np.ndarray], j: list[np.ndarray]) -> Report:
-    """Matches each draw's contacts by position and reports the worst differences."""
+def compare(pm: PairModel, draws, c: list[np.ndarray], j: list[np.ndarray]) -> Report:
+    """Matches each draw's contacts by position and reports the worst differences.
+
+    Args:
+      pm: the pair's model (names the report).
+      draws: the draws (their count; any sized collection).
+      c: C's contacts per draw, (k, 13) each.
+      j: MJX's, the same way.
+    """
     worst = {"dist": 0.0, "pos": 0.0, "normal": 0.0, "frame": 0.0}
     worst_at, worst_value = -1, 0.0
     mismatches = []
@@ -418,3 +425,67 @@ def run(t1: int, t2: int, n: int, *, seed: int = 0, flags: str = "") -> Report:
     pm = pair_model(t1, t2, flags=flags)
     draws = draw(pm, n, np.random.default_rng(seed))
     return compare(pm, draws, c_contacts(pm, draws), mjx_contacts(pm, draws))
+
+
+@functools.cache
+def _mjx_scene_collide(m_bytes: bytes, table_key):
+    """Compiled batched MJX collision of a whole model at given qpos."""
+    import tempfile  # pylint: disable=g-import-not-at-top
+
+    with tempfile.NamedTemporaryFile(suffix=".mjb") as f:
+        f.write(m_bytes)
+        f.flush()
+        m = mujoco.MjModel.from_binary_path(f.name)
+    mx = mjx.put_model(m)
+
+    def one(qpos):
+        d = mjx.make_data(mx).replace(qpos=qpos)
+        d = mjx.kinematics(mx, d)
+        d = mjx.collision(mx, d)
+        c = d._impl.contact  # pylint: disable=protected-access
+        frame = c.frame.reshape(c.frame.shape[0], 9)
+        rows = jnp.concatenate([c.dist[:, None], c.pos, frame], axis=1)
+        return rows, c.geom, c.dist < c.includemargin
+
+    return jax.jit(jax.vmap(one))
+
+
+def compare_states(m: mujoco.MjModel, qpos: np.ndarray) -> dict[str, Report]:
+    """A whole model's contacts at states `qpos` (n, nq), MJX against C, per type pair.
+
+    Contacts are grouped by geom pair and matched within each as `compare`
+    does; the reports are merged per pair of geom types ('box-box'), so a
+    model's own sizes, margins and `<pair>` settings are what is compared.
+    """
+    from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+    from mjstamp.scenes.fidelity import model_bytes  # pylint: disable=g-import-not-at-top
+
+    qpos = np.asarray(qpos, np.float64)
+    fn = _mjx_scene_collide(model_bytes(m), contacts.table_version())
+    rows, geoms, active = (np.asarray(a) for a in jax.device_get(fn(jnp.asarray(qpos))))
+    d = mujoco.MjData(m)
+    per_type: dict[str, tuple[PairModel, list, list]] = {}
+    for i, q in enumerate(qpos):
+        d.qpos[:] = q
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_collision(m, d)
+        c_rows: dict[tuple[int, int], list] = {}
+        for con in d.contact[: d.ncon]:
+            if not con.exclude:
+                key = tuple(sorted((int(con.geom1), int(con.geom2))))
+                c_rows.setdefault(key, []).append(
+                    np.concatenate([[con.dist], con.pos, con.frame]))
+        j_rows: dict[tuple[int, int], list] = {}
+        for r, g in zip(rows[i][active[i]], geoms[i][active[i]], strict=True):
+            j_rows.setdefault(tuple(sorted(int(x) for x in g)), []).append(r)
+        for key in set(c_rows) | set(j_rows):
+            name = pair_name(m.geom_type[key[0]], m.geom_type[key[1]])
+            _, cs, js = per_type.setdefault(name, (None, [], []))
+            cs.append(np.array(c_rows.get(key, [])).reshape(-1, ROW))
+            js.append(np.array(j_rows.get(key, [])).reshape(-1, ROW))
+    out = {}
+    for name, (_, cs, js) in per_type.items():
+        t1, t2 = parse_pair(name)
+        stub = PairModel(t1, t2, m, "")
+        out[name] = compare(stub, cs, cs, js)
+    return out
