@@ -42,7 +42,8 @@ def _timed(pm, draws) -> float:
     from mjstamp.scenes.contacts import compare
 
     fn = compare._mjx_collide(pm.xml, contacts.table_version())  # noqa: SLF001
-    args = [jnp.asarray(a) for a in (draws.size, draws.rbound, draws.margin, draws.qpos)]
+    args = [jnp.asarray(a) for a in (draws.size, draws.rbound, draws.margin, draws.gap,
+                                     draws.qpos, *compare.c_poses(pm, draws))]
     jax.block_until_ready(fn(*args))
     times = []
     for _ in range(3):
@@ -106,6 +107,7 @@ def _line(row: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Runs the comparison of the pairs asked for and prints a line (or JSON) per pair."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", default=",".join(PAIRS), help="comma-separated TYPE-TYPE")
     parser.add_argument("--draws", type=int, default=10_000)

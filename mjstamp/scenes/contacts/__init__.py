@@ -19,7 +19,8 @@ function against C on random poses.
 A collider here has MJX's signature plus the pair's contact parameters:
 ``fn(m, d, key, contact) -> (dist (k,), pos (k, 3), frame (k, 3, 3))`` with
 ``fn.ncon`` slots per pair and ``fn.takes_contact = True``: C's routines take
-the pair's margin (which MJX's do not), to emit contacts within it.
+the pair's margin (which MJX's do not), to emit contacts within it; the
+contact's ``includemargin`` holds what C passes its colliders, margin + gap.
 """
 
 from __future__ import annotations
@@ -99,10 +100,32 @@ def collider(ncon: int):
 
 
 def _call(func, m, d, key, contact):
-    """The patched driver's call of a collision function (ours take the contact)."""
-    if getattr(func, "takes_contact", False):
-        return func(m, d, key, contact)
-    return func(m, d, key, contact.geom)
+    """The patched driver's call of a collision function (ours take the contact).
+
+    N.B. C calls its colliders with margin + gap (engine_collision_driver.c,
+    mj_collideGeoms) and makes active only the contacts within the margin
+    (mj_setContact's includemargin); MJX ignores gap, which leaves its active
+    set the same, but a routine that picks contacts by the margin (a box's
+    corners) needs the wider one. Ours get it as `includemargin`; the driver
+    keeps MJX's own for the activation.
+    """
+    if not getattr(func, "takes_contact", False):
+        return func(m, d, key, contact.geom)
+    return func(m, d, key, contact.replace(includemargin=_collider_margin(m, contact.geom)))
+
+
+def _collider_margin(m, geom: jax.Array) -> jax.Array:
+    """(k,) margin + gap of each geom pair, from its <pair> where it has one (as C)."""
+    g1, g2 = geom[:, 0], geom[:, 1]
+    out = m.geom_margin[g1] + m.geom_margin[g2] + m.geom_gap[g1] + m.geom_gap[g2]
+    if m.npair:
+        p1, p2 = jnp.asarray(m.pair_geom1), jnp.asarray(m.pair_geom2)
+        # N.B. by ids, not by position: a broad-phase cull (max_geom_pairs) reorders pairs.
+        same = (((g1[:, None] == p1) & (g2[:, None] == p2))
+                | ((g1[:, None] == p2) & (g2[:, None] == p1)))
+        pair = m.pair_margin + m.pair_gap
+        out = jnp.where(same.any(axis=1), pair[jnp.argmax(same, axis=1)], out)
+    return out
 
 
 def table_version() -> int:
@@ -202,23 +225,17 @@ def safe_norm(x: jax.Array, axis: int = -1) -> jax.Array:
 
 
 def make_frame(normal: jax.Array) -> jax.Array:
-    """(3, 3) contact frame of a unit normal, as C's `mju_makeFrame` with no tangent."""
-    y = jnp.where((normal[1] < 0.5) & (normal[1] > -0.5), jnp.array([0.0, 1.0, 0.0]),
-                  jnp.array([0.0, 0.0, 1.0])).astype(normal.dtype)
-    b = y - normal * jnp.dot(normal, y)
-    b = b / safe_norm(b)
-    return jnp.stack([normal, b, jnp.cross(normal, b)])
+    """(3, 3) contact frame of a normal, as C's `mju_makeFrame` with no tangent set."""
+    from mjstamp.scenes.contacts import cmath  # pylint: disable=g-import-not-at-top
+
+    return cmath.frame(normal, jnp.zeros_like(normal))
 
 
 def frame_with_tangent(normal: jax.Array, tangent: jax.Array) -> jax.Array:
-    """As C's `mju_makeFrame` when the collider set a tangent (|tangent|² >= 0.25)."""
-    use = jnp.dot(tangent, tangent) >= 0.25
-    y = jnp.where((normal[1] < 0.5) & (normal[1] > -0.5), jnp.array([0.0, 1.0, 0.0]),
-                  jnp.array([0.0, 0.0, 1.0])).astype(normal.dtype)
-    t = jnp.where(use, tangent, y)
-    b = t - normal * jnp.dot(normal, t)
-    b = b / safe_norm(b)
-    return jnp.stack([normal, b, jnp.cross(normal, b)])
+    """As C's `mju_makeFrame` when the collider set a tangent (used if |tangent|² >= 0.25)."""
+    from mjstamp.scenes.contacts import cmath  # pylint: disable=g-import-not-at-top
+
+    return cmath.frame(normal, tangent)
 
 
 def _type_name(t: int) -> str:

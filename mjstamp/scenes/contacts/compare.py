@@ -136,6 +136,8 @@ class Draws:
       margin: (n, 2) geom margins.
       qpos: (n, nq) free-joint positions of the model's bodies.
       target: (n,) the signed distance aimed at when drawing (metres).
+      gap: (n, 2) geom gaps (C collides within margin + gap and keeps those
+        within the margin active); None: none.
     """
 
     size: np.ndarray
@@ -143,6 +145,11 @@ class Draws:
     margin: np.ndarray
     qpos: np.ndarray
     target: np.ndarray
+    gap: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.gap is None:
+            object.__setattr__(self, "gap", np.zeros_like(self.margin))
 
     def __len__(self) -> int:
         return len(self.qpos)
@@ -219,9 +226,13 @@ def draw(pm: PairModel, n: int, rng: np.random.Generator, *, margin_share: float
         rbound[:, g] = _rbound(kind, s)
     has_mesh = "mesh" in kinds
     margin = np.zeros((n, 2))
+    gap = np.zeros((n, 2))
     if not has_mesh:
         use = rng.uniform(size=n) < margin_share
         margin[use] = rng.uniform(0.0, 0.02, size=(use.sum(), 2))
+        # N.B. half of those with a gap as well, at most the margin (MuJoCo's intent).
+        gapped = use & (rng.uniform(size=n) < 0.5)
+        gap[gapped] = margin[gapped] * rng.uniform(0.0, 1.0, size=(gapped.sum(), 2))
     aligned = rng.uniform(size=n) < aligned_share
     quats = _random_quat(rng, 2 * n).reshape(n, 2, 4)
     quats[aligned] = _aligned_quat(rng, 2 * aligned.sum()).reshape(-1, 2, 4)
@@ -232,7 +243,7 @@ def draw(pm: PairModel, n: int, rng: np.random.Generator, *, margin_share: float
     target[miss] = total_margin[miss] + rng.uniform(1e-4, 0.05, size=miss.sum())
     qpos = np.zeros((n, m.nq))
     for i in range(n):
-        _set_sizes(m, size[i], rbound[i], margin[i])
+        _set_sizes(m, size[i], rbound[i], margin[i], gap[i])
         if pm.plane:
             lateral = rng.uniform(-1, 1, size=3) * np.array([1.0, 1.0, 0.0])
             direction = np.array([0.0, 0.0, 1.0])
@@ -244,13 +255,14 @@ def draw(pm: PairModel, n: int, rng: np.random.Generator, *, margin_share: float
             direction /= np.linalg.norm(direction)
             qpos[i] = _place(m, d, quats[i, 0], quats[i, 1], np.zeros(3), direction,
                              target[i], pm)
-    return Draws(size, rbound, margin, qpos, target)
+    return Draws(size, rbound, margin, qpos, target, gap)
 
 
-def _set_sizes(m: mujoco.MjModel, size, rbound, margin) -> None:
+def _set_sizes(m: mujoco.MjModel, size, rbound, margin, gap=0.0) -> None:
     m.geom_size[:] = size
     m.geom_rbound[:] = rbound
     m.geom_margin[:] = margin
+    m.geom_gap[:] = gap
 
 
 def _qpos(m, q1, q2, p2) -> np.ndarray:
@@ -295,7 +307,7 @@ def c_contacts(pm: PairModel, draws: Draws) -> list[np.ndarray]:
     d = mujoco.MjData(m)
     out = []
     for i in range(len(draws)):
-        _set_sizes(m, draws.size[i], draws.rbound[i], draws.margin[i])
+        _set_sizes(m, draws.size[i], draws.rbound[i], draws.margin[i], draws.gap[i])
         d.qpos[:] = draws.qpos[i]
         mujoco.mj_kinematics(m, d)
         mujoco.mj_collision(m, d)
@@ -305,16 +317,30 @@ def c_contacts(pm: PairModel, draws: Draws) -> list[np.ndarray]:
     return out
 
 
+def c_poses(pm: PairModel, draws: Draws) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo C's geom poses of every draw: xpos (n, ngeom, 3), xmat (n, ngeom, 9)."""
+    m = pm.m
+    d = mujoco.MjData(m)
+    xpos, xmat = np.empty((len(draws), m.ngeom, 3)), np.empty((len(draws), m.ngeom, 9))
+    for i in range(len(draws)):
+        d.qpos[:] = draws.qpos[i]
+        mujoco.mj_kinematics(m, d)
+        xpos[i], xmat[i] = d.geom_xpos, d.geom_xmat
+    return xpos, xmat
+
+
 @functools.cache
-def _mjx_collide(xml: str, table_key):
-    """Compiled batched MJX collision of the pair model (sizes, margins, qpos vmapped)."""
+def _mjx_collide(xml: str, table_key, c_kinematics: bool = True):
+    """Compiled batched MJX collision of the pair model (sizes, margins, poses vmapped)."""
     m = mujoco.MjModel.from_xml_string(xml)
     mx = mjx.put_model(m)
 
-    def one(size, rbound, margin, qpos):
-        mxi = mx.replace(geom_size=size, geom_rbound=rbound, geom_margin=margin)
+    def one(size, rbound, margin, gap, qpos, xpos, xmat):
+        mxi = mx.replace(geom_size=size, geom_rbound=rbound, geom_margin=margin, geom_gap=gap)
         d = mjx.make_data(mxi).replace(qpos=qpos)
         d = mjx.kinematics(mxi, d)
+        if c_kinematics:
+            d = d.replace(geom_xpos=xpos, geom_xmat=xmat.reshape(-1, 3, 3))
         d = mjx.collision(mxi, d)
         c = d._impl.contact  # pylint: disable=protected-access
         frame = c.frame.reshape(c.frame.shape[0], 9)
@@ -324,18 +350,33 @@ def _mjx_collide(xml: str, table_key):
     return jax.jit(jax.vmap(one))
 
 
-def mjx_contacts(pm: PairModel, draws: Draws, *, batch: int = 2048) -> list[np.ndarray]:
+def mjx_contacts(pm: PairModel, draws: Draws, *, batch: int = 2048,
+                 kinematics: str = "c") -> list[np.ndarray]:
     """The installed MJX collision table's contacts of every draw, as `c_contacts`.
 
-    N.B. compiled once per pair model and collision table (`table_version`).
+    Args:
+      pm: the pair's model.
+      draws: the draws.
+      batch: draws per compiled call.
+      kinematics: "c" collides the geom poses MuJoCo C computes (`c_poses`), so
+        that only the collision functions are compared; "mjx" those of
+        `mjx.kinematics`, which differ from C's in the last bits (1e-15), and an
+        ill-conditioned pair (two capsule axes crossing, a nearly parallel
+        clipping edge) can magnify that to 1e-6 in a normal.
+
+    N.B. compiled once per pair model, collision table (`table_version`) and kinematics.
     """
     from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
 
-    fn = _mjx_collide(pm.xml, contacts.table_version())
+    if kinematics not in ("c", "mjx"):
+        raise ValueError(f"kinematics={kinematics!r}; valid: c, mjx")
+    fn = _mjx_collide(pm.xml, contacts.table_version(), kinematics == "c")
+    xpos, xmat = c_poses(pm, draws)
     out = []
     for start in range(0, len(draws), batch):
         sl = slice(start, start + batch)
-        args = (draws.size[sl], draws.rbound[sl], draws.margin[sl], draws.qpos[sl])
+        args = (draws.size[sl], draws.rbound[sl], draws.margin[sl], draws.gap[sl],
+                draws.qpos[sl], xpos[sl], xmat[sl])
         rows, active = jax.device_get(fn(*(jnp.asarray(a) for a in args)))
         out.extend(np.asarray(r[a], np.float64) for r, a in zip(rows, active, strict=True))
     return out
