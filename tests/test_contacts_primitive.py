@@ -18,10 +18,11 @@ from mujoco.mjx._src.collision_types import GeomInfo
 from mjstamp.scenes import contacts
 from mjstamp.scenes.contacts import compare, primitive
 
-PORTED = ["plane-capsule", "plane-cylinder", "plane-box", "sphere-capsule", "sphere-cylinder",
-          "sphere-box", "capsule-capsule"]
-# MJX's own functions give C's contacts on these (left unported).
-MJX_OWN = ["plane-sphere", "sphere-sphere", "plane-ellipsoid"]
+PORTED = ["plane-capsule", "plane-cylinder", "plane-box", "sphere-sphere", "sphere-capsule",
+          "sphere-cylinder", "sphere-box", "capsule-capsule"]
+# MJX's own functions give C's contacts on these (left unported). N.B. sphere-sphere too,
+# but for concentric spheres (ported for those: see _deep_cases).
+MJX_OWN = ["plane-sphere", "plane-ellipsoid"]
 TOL = 1e-9
 
 # 90-degree turns, so that axes and faces are exactly parallel.
@@ -136,6 +137,10 @@ def _deep_cases(name: str, rng) -> list:
                   ([0.1], [0.2, 0.3, 0.1], _ID, _X90, [0, 0, 0], [0, 0]),
                   ([0.1], [0.2, 0.3, 0.1], _ID, _ID, [0.2, 0, 0], [0, 0]),  # on a face
                   ([0.1], [0.2, 0.3, 0.1], _ID, _ID, [0.2, 0.3, 0.0], [0.01, 0])]  # on an edge
+    if name == "sphere-sphere":
+        # concentric: C's normal is the cross product of the z axes (MJX: always x)
+        for q1, q2 in ((_ID, _X90), (_X90, _Y90), (_ID, _ID), (_quat(rng), _quat(rng))):
+            cases.append(([0.1], [0.2], q1, q2, [0, 0, 0], [0.0, 0.0]))
     if name in ("sphere-cylinder", "sphere-capsule"):
         # on the axis: side, cap and (cylinder) rim branches, concentric for the capsule
         for z in (0.0, 0.05, 0.1, 0.3, -0.3, 0.45):
@@ -252,6 +257,10 @@ def _degenerate(name: str) -> list:
         for mat in (eye, x90, y90, -eye @ x90 @ x90):  # along and across the normal, flipped
             for h in (0.05, 0.2, 0.3):
                 out.append((z, eye, plane, np.array([0.1, 0.2, h]), mat, s2, 0.01))
+    elif name == "sphere-sphere":
+        for mat1, mat2 in ((eye, eye), (eye, x90), (x90, y90)):  # concentric, then apart
+            for p in ([0, 0, 0], [0.1, 0, 0]):
+                out.append((z, mat1, [0.1, 0, 0], np.asarray(p, float), mat2, [0.2, 0, 0], 0.0))
     elif name in ("sphere-box", "sphere-cylinder", "sphere-capsule"):
         s2 = [0.2, 0.3, 0.1] if name == "sphere-box" else [0.2, 0.3, 0.0]
         for p in ([0, 0, 0], [0.2, 0, 0], [0, 0, 0.1], [0, 0, 0.3], [0.2, 0, 0.3],

@@ -65,7 +65,6 @@ _G = mujoco.mjtGeom
 MJX_EXACT = frozenset({
     (int(_G.mjGEOM_PLANE), int(_G.mjGEOM_SPHERE)),
     (int(_G.mjGEOM_PLANE), int(_G.mjGEOM_ELLIPSOID)),
-    (int(_G.mjGEOM_SPHERE), int(_G.mjGEOM_SPHERE)),
 })
 
 

@@ -415,6 +415,26 @@ def sphere_cylinder(sphere, cyl, margin):
 
 
 @collider(ncon=1)
+def sphere_sphere(s1, s2, margin):
+    """Sphere-sphere contact: C's `mjc_SphereSphere` (engine_collision_primitive.c).
+
+    N.B. MJX's own function agrees with C except for concentric spheres, where
+    C takes the normal from the cross product of the two z axes and MJX
+    always (1, 0, 0): 2.0 apart in the normal seen.
+
+    Args:
+      s1: `GeomInfo` of the first sphere.
+      s2: `GeomInfo` of the second.
+      margin: () the pair's margin.
+
+    Returns:
+      dist (1,), pos (1, 3), frame (1, 3, 3); an unused slot at `FAR`.
+    """
+    return _emit([_raw_sphere_sphere(margin, s1.pos, s1.mat, s1.size[0], s2.pos, s2.mat,
+                                     s2.size[0])])
+
+
+@collider(ncon=1)
 def sphere_box(sphere, box, margin):
     """Sphere-box contact: C's `mjc_SphereBox` / `mjraw_SphereBox` (engine_collision_box.c).
 
@@ -575,6 +595,7 @@ def capsule_capsule(cap1, cap2, margin):
 PORTED[(int(_T.mjGEOM_PLANE), int(_T.mjGEOM_CAPSULE))] = plane_capsule
 PORTED[(int(_T.mjGEOM_PLANE), int(_T.mjGEOM_CYLINDER))] = plane_cylinder
 PORTED[(int(_T.mjGEOM_PLANE), int(_T.mjGEOM_BOX))] = plane_box
+PORTED[(int(_T.mjGEOM_SPHERE), int(_T.mjGEOM_SPHERE))] = sphere_sphere
 PORTED[(int(_T.mjGEOM_SPHERE), int(_T.mjGEOM_CAPSULE))] = sphere_capsule
 PORTED[(int(_T.mjGEOM_SPHERE), int(_T.mjGEOM_CYLINDER))] = sphere_cylinder
 PORTED[(int(_T.mjGEOM_SPHERE), int(_T.mjGEOM_BOX))] = sphere_box
