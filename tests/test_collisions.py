@@ -12,15 +12,19 @@ from mjstamp.scenes import Scene
 from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.collisions import check_collidable
 
-# A cylinder puck sliding between box rails: MJX 3.17 has no cylinder-box
-# collider. {puck} and {extra} are filled in per test.
+# A cylinder puck sliding between rails of rough ground (height fields): neither
+# MJX 3.17 nor mjstamp's ports of MuJoCo C's colliders collide hfield-cylinder
+# (C does, by its general convex routine per height-field prism).
+# {puck} and {extra} are filled in per test.
 _TABLE = """
 <mujoco model="rails">
   {option}
+  <asset><hfield name="rough" nrow="3" ncol="3" size="1 0.05 0.05 0.01"
+                 elevation="0 1 0 1 0 1 0 1 0"/></asset>
   <worldbody>
     <geom name="floor" type="plane" size="1 1 0.1"/>
-    <geom name="rail_left" type="box" size="1 0.05 0.05" pos="0 0.5 0.05"/>
-    <geom name="rail_right" type="box" size="1 0.05 0.05" pos="0 -0.5 0.05"/>
+    <geom name="rail_left" type="hfield" hfield="rough" pos="0 0.5 0"/>
+    <geom name="rail_right" type="hfield" hfield="rough" pos="0 -0.5 0"/>
     <body name="puck" pos="0 0 0.03">
       <freejoint/>
       <geom name="puck" type="cylinder" size="0.1 0.02" {puck}/>
@@ -46,8 +50,8 @@ def _mjx_refuses(xml: str) -> bool:
     return False
 
 
-def test_cylinder_puck_on_box_rails_is_one_line(tmp_path):
-    """The puck-rail pair: one line naming both geoms, types, file and fixes."""
+def test_cylinder_puck_on_height_field_rails_is_one_line(tmp_path):
+    """The rail-puck pair: one line naming both geoms, types, file and fixes."""
     path = tmp_path / "rails.xml"
     path.write_text(_table())
     assert _mjx_refuses(path.read_text())
@@ -57,14 +61,25 @@ def test_cylinder_puck_on_box_rails_is_one_line(tmp_path):
     assert "\n" not in msg
     assert e.value.__cause__ is None and e.value.__context__ is None  # no MJX traceback
     assert msg.startswith(
-        f"{path}: geom 'puck' (cylinder) and geom 'rail_left' (box) collide in this "
-        "model, but cylinder-box is not collided by MJX 3.17; MJX collides cylinder "
-        "with: plane, sphere, capsule, ellipsoid, cylinder; and box with: plane, hfield, "
-        "sphere, capsule, box, mesh; make geom 'puck' a sphere, capsule, box or mesh"
+        f"{path}: geom 'rail_left' (hfield) and geom 'puck' (cylinder) collide in this "
+        "model, but hfield-cylinder is not collided by MJX 3.17 or mjstamp's ports of "
+        "MuJoCo C's colliders; they collide hfield with: sphere, capsule, box, mesh; and "
+        "cylinder with: plane, sphere, capsule, "
     )
+    assert "; make geom 'puck' a sphere, capsule, box or mesh" in msg
     assert msg.endswith(
         "or exclude the pair (contype/conaffinity bits, or an <exclude> of their bodies)"
     )
+
+
+def test_ported_pairs_are_collided():
+    """cylinder-box, which MJX 3.17 lacks, builds: MuJoCo C's routine is ported."""
+    xml = _table().replace('type="hfield" hfield="rough"', 'type="box" size="1 0.05 0.05"')
+    from mjstamp.scenes import contacts
+
+    if (5, 6) not in contacts.PORTED:
+        pytest.skip("cylinder-box is not ported in this tree")
+    assert Scene(xml).m.ngeom == 4
 
 
 def test_cli_prints_the_line_and_exits_2(tmp_path, capsys):
@@ -75,7 +90,8 @@ def test_cli_prints_the_line_and_exits_2(tmp_path, capsys):
     path.write_text(_table())
     assert main(["check", str(path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"mjstamp: error: {path}: geom 'puck' (cylinder)")
+    assert len(err) == 1 and err[0].startswith(f"mjstamp: error: {path}: geom 'rail_left' "
+                                               "(hfield) and geom 'puck' (cylinder)")
 
 
 @pytest.mark.parametrize(
@@ -106,8 +122,8 @@ def test_explicit_pair_says_remove_it():
         extra='<contact><pair geom1="puck" geom2="rail_right"/></contact>',
     )
     assert _mjx_refuses(xml)
-    with pytest.raises(MjstampError, match=r"^MJCF string: geom 'puck' \(cylinder\) and geom "
-                       r"'rail_right' \(box\) collide .* or remove their <pair>$"):  # fmt: skip
+    with pytest.raises(MjstampError, match=r"^MJCF string: geom 'rail_right' \(hfield\) and "
+                       r"geom 'puck' \(cylinder\) collide .* or remove their <pair>$"):  # fmt: skip
         Scene(xml)
 
 
@@ -115,7 +131,7 @@ def test_unnamed_geoms_by_id():
     """Geoms without names are named by their ids."""
     xml = _table().replace(' name="rail_left"', "").replace(' name="puck" type', " type")
     m = mujoco.MjModel.from_xml_string(xml)
-    with pytest.raises(MjstampError, match=r"^x\.xml: geom #3 \(cylinder\) and geom #1 \(box\)"):
+    with pytest.raises(MjstampError, match=r"^x\.xml: geom #1 \(hfield\) and geom #3 \(cylinder\)"):
         check_collidable(m, "x.xml")
 
 

@@ -1,5 +1,9 @@
 """Up-front checks that MJX 3.17 can build, and collide, a MuJoCo model.
 
+The collision table judged is the one rollouts use: MJX's own, with MuJoCo C's
+colliders ported by `mjstamp.scenes.contacts` in place of MJX's and where MJX
+has none (cylinder-box).
+
 ``mjx.put_model`` refuses some models that MuJoCo C runs, with a
 ``NotImplementedError`` at the end of a traceback into MJX's internals: a geom
 pair that the model collides but MJX has no collision function for (a
@@ -84,7 +88,7 @@ def _no_collider(m: mujoco.MjModel, label: str, g1: int, g2: int, ip: int) -> st
     t1, t2 = int(m.geom_type[g1]), int(m.geom_type[g2])
     n1, n2 = _type_name(t1), _type_name(t2)
     p1, p2 = _partners(t1), _partners(t2)
-    partners = f"MJX collides {n1} with: {valid_list(p1) if p1 else 'nothing'}"
+    partners = f"they collide {n1} with: {valid_list(p1) if p1 else 'nothing'}"
     if n2 != n1:
         partners += f"; and {n2} with: {valid_list(p2) if p2 else 'nothing'}"
     # Planes and height fields are static ground, not a stand-in for a body's geom.
@@ -99,7 +103,7 @@ def _no_collider(m: mujoco.MjModel, label: str, g1: int, g2: int, ip: int) -> st
     fix = ", or ".join(fixes + [_undo(ip).removeprefix("or ")])
     return (
         f"{label}: {_pair(m, g1, g2)} collide in this model, but {n1}-{n2} is not "
-        f"collided by {_MJX}; {partners}; {fix}"
+        f"collided by {_MJX} or mjstamp's ports of MuJoCo C's colliders; {partners}; {fix}"
     )
 
 
