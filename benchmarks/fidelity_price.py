@@ -10,13 +10,17 @@ alternation in one process (ratios survive a shared machine's load). It also
 reports each model's divergence from the scene's own physics on those
 particles (MJX rollouts against MuJoCo C with the scene's solver).
 
+With --collisions it prices MuJoCo C's colliders, ported (`mjstamp.scenes.
+contacts`), against MJX's own on the same calibrated model and particles.
+
 Usage: python benchmarks/fidelity_price.py [--tasks billiards,pushing,rolling_ball,...]
-       [--particles 128] [--repeats 5] [--json]
+       [--particles 128] [--repeats 5] [--collisions] [--json]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -88,6 +92,62 @@ def measure(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
     return row
 
 
+def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
+    """One task's row: µs per particle-step with MJX's own colliders and with C's ported.
+
+    Both on the calibrated gradient model, value-and-grad of Σ log ρ, timed in
+    alternation; each model's divergence from C on the same particles.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from mjstamp import seeding
+    from mjstamp.scenes import contacts
+    from mjstamp.solve import SolveConfig, calibrate, mjx_divergence
+
+    task = _task(name).build()
+    theta, _ = seeding.seed_particles(task, jax.random.key(seed), particles)
+    ported, cal = calibrate(task, theta, SolveConfig(allow_unfaithful=True))
+    theta_j = jnp.asarray(theta, task.scene.dtype)
+    row = {"task": name, "particles": particles, "horizon": task.horizon,
+           "gradient": cal.after.gradient,
+           "approximate_pairs_mjx": len(_approximate(ported, mjx_own=True))}
+    fns = {}
+    for key in ("mjx", "ported"):
+        # N.B. a fresh Scene per table: the table is read when a rollout is traced.
+        t = ported.on_scene(ported.scene.with_grad_options())
+        block = contacts.mjx_own() if key == "mjx" else contextlib.nullcontext()
+        try:
+            with block:
+                fns[key], row[f"compile_{key}_s"] = _timed(t, theta_j, repeats)
+                rollout = t.scene.rollout_fn(t.horizon, fields=("qpos",))
+                qpos = np.asarray(rollout(*t.inputs(theta_j))["qpos"])
+        except NotImplementedError as e:  # MJX has no function for a pair of the scene
+            row[f"us_per_particle_step_{key}"] = None
+            row[f"error_{key}"] = str(e)
+            continue
+        row[f"divergence_{key}_p95_m"] = float(np.percentile(mjx_divergence(t, theta, qpos), 95))
+    times = {key: [] for key in fns}
+    for _ in range(repeats):
+        for key, fn in fns.items():  # alternate: both see the same load
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(theta_j))
+            times[key].append(time.perf_counter() - t0)
+    steps = particles * task.horizon
+    for key in fns:
+        row[f"us_per_particle_step_{key}"] = float(np.median(times[key]) / steps * 1e6)
+    if len(fns) == 2:
+        row["price"] = row["us_per_particle_step_ported"] / row["us_per_particle_step_mjx"]
+    return row
+
+
+def _approximate(problem, *, mjx_own: bool) -> list:
+    from mjstamp.scenes import contacts
+
+    with contacts.mjx_own() if mjx_own else contextlib.nullcontext():
+        return contacts.approximate_pairs(problem.scene.m)
+
+
 def main() -> None:
     """Command line: measure each task, print a row each or one JSON object."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -95,6 +155,9 @@ def main() -> None:
     parser.add_argument("--particles", type=int, default=128)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--collisions", action="store_true",
+                        help="price of C's ported colliders against MJX's own, both on the "
+                             "calibrated model, instead of the calibration's price")
     args = parser.parse_args()
     from mjstamp.cli import configure_jax
 
@@ -102,6 +165,17 @@ def main() -> None:
     rows = []
     for name in args.tasks.split(","):
         print(f"[price] {name}", file=sys.stderr, flush=True)
+        if args.collisions:
+            rows.append(measure_collisions(name, particles=args.particles,
+                                           repeats=args.repeats))
+            if not args.json:
+                r = rows[-1]
+                print(f"{name:<16} " + "  ".join(
+                    f"{k} {r.get(f'us_per_particle_step_{k}') or float('nan'):7.1f} us (div "
+                    f"{r.get(f'divergence_{k}_p95_m', float('nan')):.2g} m)"
+                    for k in ("mjx", "ported")) + f"  price {r.get('price', float('nan')):.2f}x",
+                    flush=True)
+            continue
         rows.append(measure(name, particles=args.particles, repeats=args.repeats))
         if not args.json:
             r = rows[-1]
