@@ -154,12 +154,12 @@ def _cmd_check(args) -> int:
           f"{report['dim']} coordinates each")
     if "calibrated" in report and not options:
         print(f"calibrated       {report['calibrated']['message']}")
-    judged = {"tolerance": "", "none": "",
-              "chaos": f"; within C's own chaos, p95 {report['chaos_p95_m']:.2g} m"}
+    judged = (f"; within C's own chaos, p95 {report['chaos_p95_m']:.2g} m"
+              if report["judged_by"] == "chaos" else "")
     print(f"physics          MJX vs MuJoCo C (scene's own solver): divergence median "
           f"{report['physics_divergence_median_m']:.2g} m, p95 "
           f"{report['physics_divergence_p95_m']:.2g} m (tolerance {report['tolerance_m']:.2g} m"
-          f"{judged[report['judged_by']]})")
+          f"{judged})")
     print(f"non-finite grads {report['nonfinite']} ({report['nonfinite_fraction']:.1%})")
     if report["rel_err_median"] is not None:
         print(f"AD vs FD         scene's own physics: rel err median "

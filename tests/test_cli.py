@@ -37,3 +37,14 @@ def test_check_json_is_the_only_stdout(capsys):
     assert report["nonfinite"] == 0
     for key in ("nonfinite_fraction", "rel_err_median", "rel_err_p95", "us_per_particle_step"):
         assert key in report
+
+
+@pytest.mark.slow
+def test_check_text_report_of_a_healthy_scene(tmp_path, capsys, tiny_xml):
+    """The text report of a calibrated, faithful scene (judged by the tolerance, no chaos)."""
+    path = tmp_path / "tiny.xml"
+    path.write_text(tiny_xml())
+    assert main(["check", str(path), "--particles", "4", "--horizon", "20", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "calibrated       scene 'tiny':" in out and out.rstrip().endswith("healthy")
+    assert "physics          MJX vs MuJoCo C (scene's own solver): divergence median" in out
