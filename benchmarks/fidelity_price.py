@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import json
 import sys
 import time
@@ -114,8 +115,11 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
            "approximate_pairs_mjx": len(_approximate(ported, mjx_own=True))}
     fns = {}
     for key in ("mjx", "ported"):
-        # N.B. a fresh Scene per table: the table is read when a rollout is traced.
-        t = ported.on_scene(ported.scene.with_grad_options())
+        # N.B. a fresh Scene per table: the table is read when a rollout is traced, and
+        # a Scene memoises its compiled rollouts.
+        scene = copy.copy(ported.scene)
+        scene._rollouts = {}  # noqa: SLF001
+        t = ported.on_scene(scene)
         block = contacts.mjx_own() if key == "mjx" else contextlib.nullcontext()
         try:
             with block:
