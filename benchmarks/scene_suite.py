@@ -16,13 +16,24 @@ and reports, against the scene's MuJoCo C ground truth (suite/ground_truth.py):
   (`modes.random_search`);
 - wall time, µs per particle-step and the chosen solver iterations.
 
+Issue 28 (contacts as MuJoCo C computes them) adds, per scene: MJX itself
+against C at the initial and at the final particles (`fidelity.judge`: within
+the tolerance, within C's own chaos, or neither, with the geom pairs where the
+rollouts part), whether the solve warned (`FidelityWarning`), the pairs MJX
+collides differently from C, the share of returned plans verified before
+repair, and with `--check N` the gradient check on N of the task's particles
+(`mjstamp check`: AD against central differences of C's own physics).
+Targets (issue 28): accepted without a warning; MJX within the tolerance (or
+C's chaos) at the start and at the end; median relative error of AD <= 1e-4.
+
 Targets (issue 10): at least one verified plan, at least 90% of returned plans
 verified, coverage of the task plans occupying >= 0.1% of the box = 1.0.
 Targets (issue 11, `targets_particles`): at least 30% of the particles end as
 verified plans; STAMP finds at least as many distinct verified task plans as
 the random search in the same wall time (every scene), twice as many on half.
 
-Usage: python benchmarks/scene_suite.py [--scenes a,b] [--particles 128] [--seed 0] [--json]
+Usage: python benchmarks/scene_suite.py [--scenes a,b] [--particles 128] [--seed 0]
+       [--check N] [--json] [--save FILE]
 (`--set KEY=VALUE` overrides a solve setting, for smoke tests only: the
 benchmark is the defaults.)
 """
@@ -33,6 +44,7 @@ import argparse
 import json
 import sys
 import time
+import warnings
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -40,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 TARGET_VERIFIED_SHARE = 0.9
 TARGET_COVERAGE = 1.0
 TARGET_PARTICLE_SHARE = 0.3  # of the particles, ending as verified plans (issue 11)
+TARGET_AD_REL_ERR = 1e-4  # median, AD against C's own central differences (issue 28)
 
 
 def _value(text: str):
@@ -77,13 +90,13 @@ def _error_row(name: str, error: str, **extra) -> dict:
 
 
 def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: int,
-              random: bool, progress: bool | None) -> dict:
+              random: bool, progress: bool | None, check: int = 0) -> dict:
     """Solves one suite scene with default settings and compares it with its ground truth."""
     from suite.ground_truth import ground_truth
     from suite.tasks import SUITE
 
     from mjstamp import modes
-    from mjstamp.errors import MjstampError
+    from mjstamp.errors import FidelityWarning, MjstampError
     from mjstamp.solve import solve
 
     try:
@@ -97,15 +110,20 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
     config = {"particles": particles, **overrides}
     refused = None
     try:
-        result = solve(task, config, seed=seed, progress=progress)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", FidelityWarning)
+            result = solve(task, config, seed=seed, progress=progress)
     except MjstampError as e:
         if "allow_unfaithful" not in str(e):
             raise
         # The solve refuses a scene it cannot make faithful; record that and
         # measure what it does when asked to go on anyway.
         refused = str(e)
-        result = solve(task, {**config, "allow_unfaithful": True}, seed=seed,
-                       progress=progress)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", FidelityWarning)
+            result = solve(task, {**config, "allow_unfaithful": True}, seed=seed,
+                           progress=progress)
+    warned = [str(w.message) for w in caught if issubclass(w.category, FidelityWarning)]
     summary = result.summary()
     ok = result.verified_mask()
     found = {str(p) for p, good in zip(result.verified.plan, ok, strict=True) if good}
@@ -154,6 +172,17 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
             "task_plans_min_share": len(common),
         },
         "refused_as_unfaithful": refused,
+        "fidelity_warnings": warned,
+        "mjx_initial_p95_m": (fidelity.get("mjx_initial") or {}).get("p95_m"),
+        "mjx_initial_judged_by": (fidelity.get("mjx_initial") or {}).get("judged_by"),
+        "mjx_final_p95_m": (fidelity.get("mjx_final") or {}).get("p95_m"),
+        "mjx_final_judged_by": (fidelity.get("mjx_final") or {}).get("judged_by"),
+        "faithful_at_end": fidelity.get("faithful_at_end"),
+        "approximate_pairs": (fidelity.get("mjx_final") or {}).get("approximate_pairs"),
+        "verified_before_repair_share": (
+            (verified - int(summary.get("repaired_plans") or 0)) / returned
+            if returned else None),
+        "check": _check(task, check, seed) if check else None,
         "stamp": summary.get("stamp"),
         "timings": summary.get("timings"),
         "fidelity": fidelity or None,
@@ -164,6 +193,14 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
         "at_least_random": random_n is not None and len(found) >= random_n,
         "twice_random": random_n is not None and len(found) >= 2 * random_n,
     }
+    row["targets_contacts"] = {  # issue 28
+        "accepted_without_warning": refused is None and not warned,
+        "faithful_initial": row["mjx_initial_judged_by"] in ("tolerance", "chaos"),
+        "faithful_at_end": bool(row["faithful_at_end"]),
+        "ad_rel_err": None if not check else (
+            row["check"]["rel_err_median"] is not None
+            and row["check"]["rel_err_median"] <= TARGET_AD_REL_ERR),
+    }
     row["targets_met"] = {
         "verified_plan": verified >= 1,
         "verified_share": returned > 0 and verified / returned >= TARGET_VERIFIED_SHARE,
@@ -171,6 +208,17 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
         and row["coverage_min_share"] >= TARGET_COVERAGE,
     }
     return row
+
+
+def _check(task, particles: int, seed: int) -> dict:
+    """`mjstamp check` on the task's own particles: fidelity and AD against C's differences."""
+    from mjstamp.scenes.check import check_task
+
+    report = check_task(task, particles=particles, seed=seed)
+    keep = ("healthy", "problems", "judged_by", "physics_divergence_p95_m", "rel_err_median",
+            "rel_err_p95", "model_rel_err_median", "nonfinite", "us_per_particle_step",
+            "gradient", "iterations", "approximate_pairs")
+    return {k: report.get(k) for k in keep}
 
 
 def _fmt(x, spec: str) -> str:
@@ -181,10 +229,13 @@ COLUMNS = (
     ("scene", "scene", "s"),
     ("div before m", "physics_divergence_before_m", ".2g"),
     ("div after m", "physics_divergence_after_m", ".2g"),
+    ("MJX-C start m", "mjx_initial_p95_m", ".2g"),
+    ("MJX-C end m", "mjx_final_p95_m", ".2g"),
     ("ver/particles", "verified_particle_share", ".0%"),
     ("returned", "returned", "d"),
     ("verified", "verified", "d"),
     ("repaired", "repaired", "d"),
+    ("ver before repair", "verified_before_repair_share", ".0%"),
     ("plans", "task_plans_found", "d"),
     ("cov all", "coverage_all", ".0%"),
     ("cov>=0.1%", "coverage_min_share", ".0%"),
@@ -252,6 +303,11 @@ def main() -> None:
     parser.add_argument("--shots", type=int, default=None,
                         help="ground-truth shots (default: suite/ground_truth.py's SHOTS)")
     parser.add_argument("--no-random", action="store_true", help="skip the random search")
+    parser.add_argument("--check", type=int, default=0, metavar="N",
+                        help="also run `mjstamp check` on N of each task's particles")
+    parser.add_argument("--save", metavar="FILE",
+                        help="write the JSON there after each scene (a long run keeps what it "
+                        "measured)")
     parser.add_argument("--devices", default="auto",
                         help="host devices STAMP shards over: N, or 'auto' (default: one per "
                         "core, at most 8, as `mjstamp solve` does); the random search uses "
@@ -281,19 +337,31 @@ def main() -> None:
     for name in names:
         rows.append(run_scene(name, particles=args.particles, seed=args.seed,
                               overrides=overrides, shots=args.shots or SHOTS,
-                              random=not args.no_random, progress=progress))
+                              random=not args.no_random, progress=progress,
+                              check=args.check))
+        if args.save:
+            _save(args.save, _payload(args, devices, overrides, rows, t0))
         r = rows[-1]
         print(f"{name}: " + (f"error: {r['error']}" if r.get("error") else
                              f"{r['verified']} verified plans, {r['task_plans_found']} task "
                              f"plans, {r['wall_s']:.0f} s solve"), file=sys.stderr, flush=True)
     if args.json:
-        print(json.dumps({
-            "benchmark": "scene_suite", "particles": args.particles, "seed": args.seed,
-            "devices": devices,
-            "overrides": overrides, "total_s": time.perf_counter() - t0, "scenes": rows,
-        }))
+        print(json.dumps(_payload(args, devices, overrides, rows, t0)))
         return
     print(format_rows(rows))
+
+
+def _payload(args, devices, overrides: dict, rows: list[dict], t0: float) -> dict:
+    return {"benchmark": "scene_suite", "particles": args.particles, "seed": args.seed,
+            "devices": devices, "overrides": overrides, "total_s": time.perf_counter() - t0,
+            "scenes": rows}
+
+
+def _save(path: str, payload: dict) -> None:
+    from mjstamp.fileio import write_atomic
+
+    data = json.dumps(payload, indent=1).encode()
+    write_atomic(Path(path), lambda f: f.write(data))
 
 
 if __name__ == "__main__":

@@ -206,3 +206,8 @@ def test_scene_suite_runs_end_to_end(tmp_path):
     met = row["targets_particles"]
     assert set(met) == {"verified_particle_share", "at_least_random", "twice_random"}
     assert met["at_least_random"] == (row["task_plans_found"] >= row["random_task_plans"])
+    # Issue 28: MJX itself against C at both ends, warnings and approximate pairs recorded.
+    assert row["mjx_initial_judged_by"] in ("tolerance", "chaos", "none")
+    assert row["mjx_final_p95_m"] >= 0 and isinstance(row["fidelity_warnings"], list)
+    assert set(row["targets_contacts"]) == {"accepted_without_warning", "faithful_initial",
+                                            "faithful_at_end", "ad_rel_err"}
