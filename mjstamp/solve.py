@@ -647,7 +647,9 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     robust = _robustness(problem, cfg, theta, returned & outcome.verified.ok,
                          outcome.verified.plan, seed, say)
     clock["robustness"] = time.perf_counter()
-    report.update(_final_fidelity(problem, outcome, calibration, stamp, len(theta), theta))
+    initial_faithful = (report.get("mjx_initial") or {}).get("faithful", True)
+    report.update(_final_fidelity(problem, outcome, calibration, stamp, len(theta), theta,
+                                  initial_faithful=initial_faithful))
     return SolveResult(
         problem=problem, config={"seed": seed, "task": dict(problem.settings),
                                  "solve": cfg.as_dict()},
@@ -773,8 +775,13 @@ def _rescue_report(problem, cfg: SolveConfig, stamp, initial: Outcome,
                                  "final": _plan_counts(outcome.verified)}}
 
 
-def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int, theta) -> dict:
-    """MJX against C at the final particles (`fidelity.judge`), and the model's cost."""
+def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int, theta, *,
+                    initial_faithful: bool) -> dict:
+    """MJX against C at the final particles (`fidelity.judge`), and the model's cost.
+
+    Warns (`FidelityWarning`) where MJX parts from C there though it did not at
+    the initial particles (which warned already if it did).
+    """
     out = {
         "gradient": problem.scene.grad_options.gradient,
         "iterations": problem.scene.grad_options.iterations,
@@ -785,6 +792,11 @@ def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int, theta
     tolerance = (calibration.tolerance_m if calibration is not None
                  else fidelity.default_tolerance(problem.scene))
     verdict = _judge(problem, theta, outcome.mjx_replay.qpos, outcome.replay.qpos, tolerance)
+    if calibration is not None and not verdict.faithful and initial_faithful:
+        # N.B. the particles found contacts the initial ones never made: say so once.
+        message = verdict.message(problem.scene.name, m, problem.horizon)
+        warnings.warn(f"at the final particles, {message}; their plans are verified and "
+                      "repaired in MuJoCo C", FidelityWarning, stacklevel=4)
     out.update({
         "mjx_divergence_median_m": verdict.median_m,
         "mjx_divergence_p95_m": verdict.p95_m,

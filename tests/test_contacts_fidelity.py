@@ -90,3 +90,36 @@ def test_chaos_spread_is_zero_without_a_nudge():
     qpos0, qvel0 = _tosses(scene, n=4)
     assert (fidelity.chaos_spread(scene, qpos0, qvel0, horizon=10, nudge=0.0) == 0).all()
     assert (fidelity.chaos_spread(scene, qpos0, qvel0, horizon=10) > 0).all()
+
+
+def test_solve_warns_in_one_line_and_goes_on_where_mjx_parts(monkeypatch, tiny_task):
+    """A parting MJX is a FidelityWarning naming the pairs, not a refusal."""
+    import warnings
+
+    from mjstamp import solve as solve_mod
+    from mjstamp.errors import FidelityWarning
+
+    problem = tiny_task().build()
+    theta = np.array([[1.0, 0.5], [1.5, -0.5]])
+    qpos_c = solve_mod.plans_mod.simulate_c(problem, theta).qpos
+    off = qpos_c.copy()
+    off[:, 10:, 0] += 0.05  # the puck jumps 5 cm at step 11
+
+    class Evaluate:
+        def mjx(self, th):
+            return np.zeros(len(th)), off
+
+    class Calibration:
+        tolerance_m = 1e-3
+
+    said = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        report = solve_mod._check_mjx(problem, Evaluate(), theta, Calibration(), said.append)
+    (w,) = [w for w in caught if issubclass(w.category, FidelityWarning)]
+    msg = str(w.message)
+    assert "\n" not in msg and msg.startswith("scene 'tiny': MJX rollouts vs MuJoCo C")
+    assert "planning anyway: every plan is verified and repaired in MuJoCo C" in msg
+    assert report["mjx_initial"]["judged_by"] == "none"
+    assert report["mjx_initial"]["parting"]["particles"] == 2
+    assert report["mjx_initial_divergence_p95_m"] == pytest.approx(0.05, rel=1e-6)
