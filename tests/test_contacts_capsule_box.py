@@ -53,8 +53,7 @@ def test_aligned_poses_match_c(pm):
 @functools.cache
 def _batched():
     def one(p1, m1, s1, p2, m2, s2, margin):
-        pos = capsule_box._mul_mat_t_vec(m2, p1 - p2)
-        axis = capsule_box._mul_mat_t_vec(m2, m1[:, 2])
+        pos, axis = capsule_box.box_frame(p1, m1, p2, m2)
         _, _, secondpos, best = capsule_box.segment_points(pos, axis, s1, s2, margin)
         out = capsule_box.capsule_box.pair_fn(GeomInfo(p1, m1, s1), GeomInfo(p2, m2, s2), margin)
         return best["cltype"], secondpos, out

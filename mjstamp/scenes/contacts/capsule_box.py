@@ -11,7 +11,14 @@ box (`mjraw_SphereBox`). So it emits at most 2 contacts, although
 
 Every branch of C is computed and the taken one selected (`jnp.where`), in C's
 order and with C's arithmetic (the same sums in the same order, reciprocals
-where C multiplies by one), so that ties and thresholds fall the same way.
+where C multiplies by one, products rounded before they are summed: `cmath.mul`),
+so that ties and thresholds fall the same way.
+
+N.B. written on scalars (a 3-vector is a tuple of three), so that the compiled
+code is elementwise loops only, forward and reverse (`cmath`'s scalar forms).
+The search runs without gradients: its only continuous results, the winning
+edge's two line parameters, are recomputed once from the winner's inputs (the
+same operations on the same values, so the same bits) for the derivatives.
 """
 
 from __future__ import annotations
@@ -20,40 +27,34 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from mjstamp.scenes.contacts import FAR, PORTED, collider, make_frame
+from mjstamp.scenes.contacts import FAR, PORTED, collider
+from mjstamp.scenes.contacts.cmath import (
+    dot_s,
+    frame_s,
+    mat_t_vec_s,
+    mat_vec_s,
+    mul,
+    opaque_one,
+    sqrt,
+    stage,
+    unpack,
+)
 
 __all__ = ["capsule_box", "segment_points", "sphere_box"]
 
 # mjMINVAL of C's mjmodel.h.
 _MINVAL = 1e-15
 
-
-def _mul(a: jax.Array, b: jax.Array) -> jax.Array:
-    """The product a * b, rounded before any sum it enters, as C rounds it.
-
-    N.B. XLA lets LLVM contract ``a * b + c`` into one fused multiply-add (on
-    CPU and GPU alike), which rounds once where C (built without FMA) rounds
-    twice: the last-bit differences flip C's ties and thresholds on
-    axis-aligned poses. LLVM cannot contract through the select. Products
-    that are exact (by 0.5, 2 or +-1) are left bare.
-    """
-    p = a * b
-    return jnp.where(p == p, p, 0.0)
+# The 12 edges in C's order: axis j, then the corners i (0..7) with bit j clear.
+_EDGES = tuple((j, i) for j in range(3) for i in range(8) if not i & (1 << j))
 
 
-def _mul_mat_vec(mat: jax.Array, vec: jax.Array) -> jax.Array:
-    """Product mat (3, 3) @ vec (3,), summed as C's `mji_mulMatVec3` (engine_inline.h)."""
-    return _mul(mat[:, 0], vec[0]) + _mul(mat[:, 1], vec[1]) + _mul(mat[:, 2], vec[2])
-
-
-def _mul_mat_t_vec(mat: jax.Array, vec: jax.Array) -> jax.Array:
-    """Product mat.T (3, 3) @ vec (3,), summed as C's `mji_mulMatTVec3` (engine_inline.h)."""
-    return _mul(mat[0], vec[0]) + _mul(mat[1], vec[1]) + _mul(mat[2], vec[2])
-
-
-def _dot3(a: jax.Array, b: jax.Array) -> jax.Array:
-    """The dot product a . b, summed as C's `mju_dot3` (engine_util_blas.c)."""
-    return _mul(a[0], b[0]) + _mul(a[1], b[1]) + _mul(a[2], b[2])
+def _pick(k, values):
+    """values[k] for a traced index k in 0..len(values) - 1, by selects (copies the value)."""
+    out = values[-1]
+    for i in range(len(values) - 2, -1, -1):
+        out = jnp.where(k == i, values[i], out)
+    return out
 
 
 def _div_or_inf(num: jax.Array, den: jax.Array) -> jax.Array:
@@ -64,6 +65,55 @@ def _div_or_inf(num: jax.Array, den: jax.Array) -> jax.Array:
     """
     ok = den > 0
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), jnp.inf)
+
+
+def _sphere_box(center, radius, margin, pos2, mat2, size2, one):
+    """C's `mjraw_SphereBox` on scalars: see `sphere_box`; vectors are triples of scalars.
+
+    `one` is `stage`'s divisor.
+    """
+    center = stage(mat_t_vec_s(mat2, tuple(c - p for c, p in zip(center, pos2, strict=True))),
+                   one)
+    # N.B. mju_clampVec skips limits <= 0; a box's half-sizes are positive.
+    clamped = tuple(jnp.clip(c, -s, s) for c, s in zip(center, size2, strict=True))
+    tmp = tuple(a - c for a, c in zip(clamped, center, strict=True))
+    dist = sqrt(dot_s(tmp, tmp))
+    # mju_normalize3: leaves (1, 0, 0) below mjMINVAL, where the inside branch is taken.
+    big = dist >= _MINVAL
+    inv = 1 / jnp.where(big, dist, 1.0)
+    tmp = tuple(jnp.where(big, t * inv, e) for t, e in zip(tmp, (1.0, 0.0, 0.0), strict=True))
+    emitted = ~(dist - radius > margin)
+    clamped, tmp, dist = stage((clamped, tmp, dist), one)
+
+    # Sphere centre inside the box: push out through the nearest face (first of
+    # -x, +x, -y, +y, -z, +z on ties).
+    closest = (size2[0] + size2[1] + size2[2]) * 2
+    k = jnp.int32(0)
+    for i in range(6):
+        face = size2[i // 2] if i % 2 else -size2[i // 2]
+        gap = jnp.abs(face - center[i // 2])
+        better = closest > gap
+        closest = jnp.where(better, gap, closest)
+        k = jnp.where(better, i, k)
+    closest, k = stage((closest, k), one)
+    # nearest = -/+ e_(k // 2): C's sums with its zero components are exact.
+    sign = jnp.where((k & 1) == 1, -1.0, 1.0)
+    axis = k >> 1
+    half = (radius - closest) / 2
+    pos_in = tuple(jnp.where(axis == i, center[i] + sign * half, center[i]) for i in range(3))
+    normal_in = tuple(_pick(axis, row) * sign for row in mat2)
+
+    # Outside: midpoint of the box's closest point and the sphere's deepest one.
+    pos_out = tuple(a * 0.5 + (c + mul(t, radius)) * 0.5
+                    for a, c, t in zip(clamped, center, tmp, strict=True))
+    normal_out = mat_vec_s(mat2, tmp)
+
+    inside = dist <= _MINVAL
+    pos = tuple(jnp.where(inside, a, b) for a, b in zip(pos_in, pos_out, strict=True))
+    normal = tuple(jnp.where(inside, a, b) for a, b in zip(normal_in, normal_out, strict=True))
+    dist = jnp.where(inside, -closest, dist)
+    world = tuple(w + p for w, p in zip(mat_vec_s(mat2, pos), pos2, strict=True))
+    return emitted, dist - radius, world, normal
 
 
 def sphere_box(center: jax.Array, radius: jax.Array, margin: jax.Array, pos2: jax.Array,
@@ -83,43 +133,12 @@ def sphere_box(center: jax.Array, radius: jax.Array, margin: jax.Array, pos2: ja
       (distance within the margin), its distance, position and normal (from
       the sphere to the box).
     """
-    center = _mul_mat_t_vec(mat2, center - pos2)
-    # N.B. mju_clampVec skips limits <= 0; a box's half-sizes are positive.
-    clamped = jnp.clip(center, -size2, size2)
-    tmp = clamped - center
-    sq = _dot3(tmp, tmp)
-    pos_sq = sq > 0
-    dist = jnp.where(pos_sq, jnp.sqrt(jnp.where(pos_sq, sq, 1.0)), 0.0)
-    # mju_normalize3: leaves (1, 0, 0) below mjMINVAL, where the inside branch is taken.
-    big = dist >= _MINVAL
-    tmp = jnp.where(big, tmp * (1 / jnp.where(big, dist, 1.0)), jnp.array([1.0, 0.0, 0.0]))
-    emitted = ~(dist - radius > margin)
-
-    # Sphere centre inside the box: push out through the nearest face (first of
-    # -x, +x, -y, +y, -z, +z on ties).
-    closest = (size2[0] + size2[1] + size2[2]) * 2
-    k = 0
-    for i in range(6):
-        face = (1.0 if i % 2 else -1.0) * size2[i // 2]
-        gap = jnp.abs(face - center[i // 2])
-        better = closest > gap
-        closest = jnp.where(better, gap, closest)
-        k = jnp.where(better, i, k)
-    sign = jnp.where(k % 2 == 1, -1.0, 1.0)
-    nearest = jnp.where(jnp.arange(3) == k // 2, sign, 0.0)
-    pos_in = center + nearest * ((radius - closest) / 2)
-    normal_in = _mul_mat_vec(mat2, nearest)
-
-    # Outside: midpoint of the box's closest point and the sphere's deepest one.
-    deepest = center + _mul(tmp, radius)
-    pos_out = clamped * 0.5 + deepest * 0.5
-    normal_out = _mul_mat_vec(mat2, tmp)
-
-    inside = dist <= _MINVAL
-    pos = jnp.where(inside, pos_in, pos_out)
-    normal = jnp.where(inside, normal_in, normal_out)
-    dist = jnp.where(inside, -closest, dist)
-    return emitted, dist - radius, _mul_mat_vec(mat2, pos) + pos2, normal
+    one = opaque_one(center[0] + pos2[0])
+    center, pos2, m, size2 = stage((unpack(center), unpack(pos2), unpack(mat2), unpack(size2)),
+                                   one)
+    emitted, dist, pos, normal = _sphere_box(center, radius, margin, pos2,
+                                             (m[0:3], m[3:6], m[6:9]), size2, one)
+    return emitted, dist, jnp.stack(pos), jnp.stack(normal)
 
 
 def _face_candidates(pos, halfaxis, size2, bestdist):
@@ -129,71 +148,70 @@ def _face_candidates(pos, halfaxis, size2, bestdist):
     is closer; the edge tests find it).
 
     Returns:
-      dict of the running best: bestdist, bestsegmentpos, cltype (-3 or -1:
-      the -1 or +1 end is closest; -4: none), clface (the clamped axis, -1
-      when the end is inside the box).
+      (bestdist, cltype, clface): the running best squared distance; -3 or -1
+      (the -1 or +1 end is closest) or -4 (none); the clamped axis (-1 when the
+      end is inside the box).
     """
-    best = {"bestdist": bestdist, "bestsegmentpos": jnp.zeros_like(bestdist),
-            "cltype": jnp.int32(-4), "clface": jnp.int32(-1)}
+    cltype, clface = jnp.int32(-4), jnp.int32(-1)
     for i in (-1, 1):
-        end = pos + halfaxis * float(i)
-        clamped = end
+        end = tuple(p + h * float(i) for p, h in zip(pos, halfaxis, strict=True))
         c1 = jnp.int32(0)
         c2 = jnp.int32(-1)
+        diff = []
         for j in range(3):
             below = end[j] < -size2[j]
             above = end[j] > size2[j]
             out = below | above
             c1 = c1 + out.astype(jnp.int32)
             c2 = jnp.where(out, j, c2)
-            clamped = clamped.at[j].set(
-                jnp.where(below, -size2[j], jnp.where(above, size2[j], end[j])))
-        diff = clamped - end
-        dist = _dot3(diff, diff)
-        better = (c1 <= 1) & (dist < best["bestdist"])
-        new = {"bestdist": dist, "bestsegmentpos": jnp.asarray(float(i), dist.dtype),
-               "cltype": jnp.int32(-2 + i), "clface": c2}
-        best = {key: jnp.where(better, new[key], best[key]) for key in best}
-    return best
+            clamped = jnp.where(below, -size2[j], jnp.where(above, size2[j], end[j]))
+            diff.append(clamped - end[j])
+        dist = dot_s(diff, diff)
+        better = (c1 <= 1) & (dist < bestdist)
+        bestdist = jnp.where(better, dist, bestdist)
+        cltype = jnp.where(better, -2 + i, cltype)
+        clface = jnp.where(better, c2, clface)
+    return bestdist, cltype, clface
 
 
-def _edge_candidate(j, i, pos, halfaxis, size1, size2):
-    """Closest points of the segment and the box edge along axis j from corner i.
+def _edge_params(dif, halfaxis, sj, hj, difj, mc):
+    """C's line-line parameters of the segment and one box edge (inline in `mjraw_CapsuleBox`).
 
-    C's inline line-line distance of `mjraw_CapsuleBox`: parameters x1 on the
-    edge and x2 on the segment, each in [-1, 1], clamped the way C clamps them
-    (N.B. a clamp of x2 recomputes x1 but keeps s1 from the first clamp unless
-    x1 is clamped again: C's bookkeeping, kept because it picks the branch).
+    Args:
+      dif: the edge's start minus the capsule centre (triple), box frame.
+      halfaxis: the capsule's half-axis (triple).
+      sj: the box's half-size along the edge's axis j.
+      hj: halfaxis[j].
+      difj: dif[j].
+      mc: the squared half-length.
 
     Returns:
-      (ok, dist2, x1, x2, c1): ok false where C skips the edge (parallel to the
-      segment, |det| < mjMINVAL); squared distance; the parameters; c1 =
-      3 * s1 + s2 with s = 0, 1, 2 for the lower end, interior, upper end.
+      (ok, x1, x2, s1, s2): ok false where C skips the edge (parallel to the
+      segment, |det| < mjMINVAL); the parameters on the edge and on the
+      segment, each in [-1, 1], clamped the way C clamps them; s = 0, 1, 2 for
+      the lower end, interior, upper end (N.B. a clamp of x2 recomputes x1 but
+      keeps s1 from the first clamp unless x1 is clamped again: C's
+      bookkeeping, kept because it picks the branch).
     """
-    corner = jnp.stack([(1.0 if i & (1 << k) else -1.0) * size2[k] for k in range(3)])
-    corner = corner.at[j].set(0.0)
-    dif = corner - pos
-    sj = size2[j]
     ma = sj * sj
-    mb = _mul(-sj, halfaxis[j])
-    mc = size1[1] * size1[1]
-    u = _mul(-sj, dif[j])
-    v = _dot3(halfaxis, dif)
-    det = _mul(ma, mc) - _mul(mb, mb)
+    mb = mul(-sj, hj)
+    u = mul(-sj, difj)
+    v = dot_s(halfaxis, dif)
+    det = mul(ma, mc) - mul(mb, mb)
     ok = ~(jnp.abs(det) < _MINVAL)
     idet = 1 / jnp.where(ok, det, 1.0)
-    x1 = _mul(_mul(mc, u) - _mul(mb, v), idet)
-    x2 = _mul(_mul(ma, v) - _mul(mb, u), idet)
+    x1 = mul(mul(mc, u) - mul(mb, v), idet)
+    x2 = mul(mul(ma, v) - mul(mb, u), idet)
 
     # Clamp the edge parameter; then the segment's, re-solving the edge's.
     hi1 = x1 > 1
     lo1 = ~hi1 & (x1 < -1)
     s1 = jnp.where(hi1, 2, jnp.where(lo1, 0, 1))
-    x2 = jnp.where(hi1, _mul(v - mb, 1 / mc), jnp.where(lo1, _mul(v + mb, 1 / mc), x2))
+    x2 = jnp.where(hi1, mul(v - mb, 1 / mc), jnp.where(lo1, mul(v + mb, 1 / mc), x2))
     x1 = jnp.where(hi1, 1.0, jnp.where(lo1, -1.0, x1))
     hi2 = x2 > 1
     lo2 = ~hi2 & (x2 < -1)
-    x1r = jnp.where(hi2, _mul(u - mb, 1 / ma), _mul(u + mb, 1 / ma))
+    x1r = jnp.where(hi2, mul(u - mb, 1 / ma), mul(u + mb, 1 / ma))
     hi1r = x1r > 1
     lo1r = ~hi1r & (x1r < -1)
     s1r = jnp.where(hi1r, 2, jnp.where(lo1r, 0, s1))
@@ -203,15 +221,74 @@ def _edge_candidate(j, i, pos, halfaxis, size1, size2):
     x2 = jnp.where(hi2, 1.0, jnp.where(lo2, -1.0, x2))
     x1 = jnp.where(clamp2, x1r, x1)
     s1 = jnp.where(clamp2, s1r, s1)
-
-    dif = corner - pos
-    dif = dif + _mul(halfaxis, -x2)
-    dif = dif.at[j].add(_mul(sj, x1))
-    return ok, _dot3(dif, dif), x1, x2, s1 * 3 + s2
+    return ok, x1, x2, s1, s2
 
 
-def _second_corner(axis, halfaxis, size2, axisdir, clcorner, bsp):
+def _corner(i, j, size2):
+    """The edge's start: corner i of the box (bit k: + or - size2[k]) with axis j set to 0."""
+    return tuple(0.0 * size2[k] if k == j else (size2[k] if i & (1 << k) else -size2[k])
+                 for k in range(3))
+
+
+def _edge_search(pos, halfaxis, size1, size2, bestdist):
+    """The 12 edge tests of `mjraw_CapsuleBox`, in C's order, with its tie rule.
+
+    Returns:
+      (won, bestdist): the index in `_EDGES` of the closest edge (-1: none beats
+      the faces); its squared distance.
+    """
+    mc = size1[1] * size1[1]
+    won = jnp.int32(-1)
+    for k, (j, i) in enumerate(_EDGES):
+        corner = _corner(i, j, size2)
+        dif = tuple(c - p for c, p in zip(corner, pos, strict=True))
+        ok, x1, x2, _, _ = _edge_params(dif, halfaxis, size2[j], halfaxis[j], dif[j], mc)
+        dif = tuple(d + mul(h, -x2) for d, h in zip(dif, halfaxis, strict=True))
+        dif = tuple(d + mul(size2[j], x1) if m == j else d for m, d in enumerate(dif))
+        dist2 = dot_s(dif, dif)
+        # N.B. C's "- mjMINVAL" keeps a face (or earlier edge) on near-ties
+        # when the axis is numerically parallel to the box.
+        better = ok & (dist2 < bestdist - _MINVAL)
+        bestdist = jnp.where(better, dist2, bestdist)
+        won = jnp.where(better, k, won)
+    return won, bestdist
+
+
+def _winning_edge(won, pos, halfaxis, size1, size2):
+    """The closest edge's parameters, recomputed from its inputs (for the derivatives).
+
+    Returns:
+      (x1, x2, cltype, clcorner, cledge) as C's edge test sets them (garbage
+      where won == -1).
+    """
+    k = jnp.maximum(won, 0)
+    j = k >> 2  # 4 edges per axis
+    i = _pick(k, [jnp.int32(i) for _, i in _EDGES])
+    corner = tuple(jnp.where(j == m, 0.0 * size2[m],
+                             jnp.where((i & (1 << m)) != 0, size2[m], -size2[m]))
+                   for m in range(3))
+    dif = tuple(c - p for c, p in zip(corner, pos, strict=True))
+    _, x1, x2, s1, s2 = _edge_params(dif, halfaxis, _pick(j, size2), _pick(j, halfaxis),
+                                     _pick(j, dif), size1[1] * size1[1])
+    c1 = s1 * 3 + s2
+    clcorner = i + jnp.where(c1 >= 6, jnp.left_shift(1, j), 0)
+    return x1, x2, c1, clcorner, j
+
+
+def _next(ax):
+    """(ax + 1) % 3 and (ax + 2) % 3."""
+    return jnp.where(ax == 2, 0, ax + 1), jnp.where(ax == 0, 2, ax - 1)
+
+
+def _second_corner(axis, q, axisdir, clcorner, bsp):
     """Second point when a box corner is closest (cltype >= 0, cltype // 3 != 1).
+
+    Args:
+      axis: the capsule's unit axis (triple), box frame.
+      q: the triple 2 size2[k] / |halfaxis[k]| (+inf for 0).
+      axisdir: the axis's octant (bit k: halfaxis[k] > 0).
+      clcorner: the closest corner (bit k: + side along k).
+      bsp: the closest point's parameter on the segment.
 
     Returns:
       (take, secondpos): take false where C skips (the segment points to or
@@ -220,28 +297,27 @@ def _second_corner(axis, halfaxis, size2, axisdir, clcorner, bsp):
     c1 = jnp.bitwise_xor(axisdir, clcorner)
     take = (c1 != 0) & (c1 != 7)
     flip = (c1 == 3) | (c1 == 5) | (c1 == 6)
-    mul = jnp.where(flip, -1.0, 1.0)
+    mul_ = jnp.where(flip, -1.0, 1.0)
     de = jnp.where(flip, 1 + bsp, 1 - bsp)
     dp = jnp.where(flip, 1 - bsp, 1 + bsp)
     c1 = jnp.where(flip, 7 - c1, c1)
     ax = jnp.where(c1 == 1, 0, jnp.where(c1 == 2, 1, 2))
-    ax1 = (ax + 1) % 3
-    ax2 = (ax + 2) % 3
+    ax1, ax2 = _next(ax)
 
     # Along the box's edge (the segment within 45 degrees of it) ...
-    e1 = _div_or_inf(2 * size2[ax], jnp.abs(halfaxis[ax]))
-    along_edge = jnp.where(e1 < de, e1, de) * mul
+    e1 = _pick(ax, q)
+    along_edge = jnp.where(e1 < de, e1, de) * mul_
     # ... or across a face, stopping where the segment leaves it.
-    sp = dp
-    e1 = _div_or_inf(2 * size2[ax1], jnp.abs(halfaxis[ax1]))
+    e1 = _pick(ax1, q)
+    sp = jnp.where(e1 < dp, e1, dp)
+    e1 = _pick(ax2, q)
     sp = jnp.where(e1 < sp, e1, sp)
-    e1 = _div_or_inf(2 * size2[ax2], jnp.abs(halfaxis[ax2]))
-    sp = jnp.where(e1 < sp, e1, sp)
-    along_face = sp * -mul
-    return take, jnp.where(axis[ax] * axis[ax] > 0.5, along_edge, along_face)
+    along_face = sp * -mul_
+    a = _pick(ax, axis)
+    return take, jnp.where(a * a > 0.5, along_edge, along_face)
 
 
-def _second_edge(axis, halfaxis, size2, axisdir, clcorner, cledge, bsp, bestboxpos):
+def _second_edge(axis, halfaxis, size2, q, axisdir, clcorner, cledge, bsp, bestboxpos):
     """Second point when the inside of a box edge is closest (cltype // 3 == 1).
 
     Returns:
@@ -251,22 +327,21 @@ def _second_edge(axis, halfaxis, size2, axisdir, clcorner, cledge, bsp, bestboxp
     c1 = jnp.bitwise_xor(axisdir, clcorner) & (7 - jnp.left_shift(1, cledge))
     take = (c1 == 1) | (c1 == 2) | (c1 == 4)
     ax = cledge
-    ax1 = (ax + 1) % 3
-    ax2 = (ax + 2) % 3
+    ax1, ax2 = _next(ax)
     # The face the segment makes the smaller angle with.
-    ax1 = jnp.where(jnp.abs(axis[ax1]) > jnp.abs(axis[ax2]), ax2, ax1)
+    ax1 = jnp.where(jnp.abs(_pick(ax1, axis)) > jnp.abs(_pick(ax2, axis)), ax2, ax1)
     ax2 = 3 - ax - ax1
     bit = (jnp.right_shift(c1, ax2) & 1) != 0
-    mul = jnp.where(bit, 1.0, -1.0)
+    sign = jnp.where(bit, 1.0, -1.0)
     sp = jnp.where(bit, 1 - bsp, 1 + bsp)
-    e1 = _div_or_inf(2 * size2[ax2], jnp.abs(halfaxis[ax2]))
+    e1 = _pick(ax2, q)
     sp = jnp.where(e1 < sp, e1, sp)
     same = ((jnp.right_shift(axisdir, ax) & 1) != 0) == bit
     e2 = jnp.where(same, 1 - bestboxpos, 1 + bestboxpos)
     # N.B. e2 >= 0: C's quotient by |halfaxis| = 0 is +inf or NaN, never taken.
-    e1 = _div_or_inf(size2[ax] * e2, jnp.abs(halfaxis[ax]))
+    e1 = _div_or_inf(_pick(ax, size2) * e2, jnp.abs(_pick(ax, halfaxis)))
     sp = jnp.where(e1 < sp, e1, sp)
-    return take, sp * mul
+    return take, sp * sign
 
 
 def _second_face(pos, halfaxis, size2, cltype, clface):
@@ -279,18 +354,63 @@ def _second_face(pos, halfaxis, size2, cltype, clface):
       (take, secondpos): take false where C skips (the end inside the box).
     """
     take = clface != -1
-    mul = jnp.where(cltype == -3, 1.0, -1.0)
-    sp = jnp.asarray(2.0, pos.dtype)
-    tmp1 = pos + halfaxis * -mul
+    sign = jnp.where(cltype == -3, 1.0, -1.0)
+    sp = jnp.asarray(2.0, pos[0].dtype)
     for i in range(3):
         h = halfaxis[i]
+        start = pos[i] + h * -sign
         # N.B. C divides by h = 0 too: +-inf or NaN, which never pass the tests below.
-        ok = (i != clface) & (h != 0)
+        ok = (clface != i) & (h != 0)
         hs = jnp.where(h != 0, h, 1.0)
         for bound in (size2[i], -size2[i]):
-            e1 = (bound - tmp1[i]) / hs * mul
+            e1 = (bound - start) / hs * sign
             sp = jnp.where(ok & (e1 > 0) & (e1 < sp), e1, sp)
-    return take, sp * mul
+    return take, sp * sign
+
+
+def _segment_points(pos, axis, size1, size2, margin, one):
+    """`segment_points` on scalar triples; see there (`one`: `stage`'s divisor)."""
+    halfaxis = stage(tuple(mul(a, size1[1]) for a in axis), one)
+    # The octant of the axis (bit k: halfaxis[k] > 0); 7 - axisdir is the same line.
+    axisdir = ((halfaxis[0] > 0).astype(jnp.int32) + 2 * (halfaxis[1] > 0).astype(jnp.int32)
+               + 4 * (halfaxis[2] > 0).astype(jnp.int32))
+    bestdistmax = margin + 2 * (size1[0] + size1[1] + size2[0] + size2[1] + size2[2])
+
+    # The search: discrete choices only (its distances are compared, never output).
+    sg = jax.lax.stop_gradient
+    pos_, half_, size1_, size2_ = (tuple(sg(c) for c in v) for v in (pos, halfaxis, size1, size2))
+    bestdist, cltype_f, clface = _face_candidates(pos_, half_, size2_, sg(bestdistmax))
+    won, bestdist = _edge_search(pos_, half_, size1_, size2_, bestdist)
+    # N.B. C's dead block after the edge tests (a 2-D search in the xy plane
+    # whose results are never read) is left out.
+    won, bestdist, cltype_f, clface = stage((won, bestdist, cltype_f, clface), one)
+
+    edge = won >= 0
+    x1, x2, cltype_e, clcorner, cledge = stage(_winning_edge(won, pos, halfaxis, size1, size2),
+                                               one)
+    cltype = jnp.where(edge, cltype_e, cltype_f)
+    clcorner = jnp.where(edge, clcorner, 0)
+    cledge = jnp.where(edge, cledge, 0)
+    bsp = jnp.where(edge, x2, jnp.where(cltype_f == -1, 1.0, jnp.where(cltype_f == -3, -1.0,
+                                                                         0.0)))
+    bestboxpos = jnp.where(edge, x1, 0.0)
+
+    # 2 size2[k] / |halfaxis[k]|, shared by the corner and the edge rules.
+    q = tuple(_div_or_inf(2 * s, jnp.abs(h)) for s, h in zip(size2, halfaxis, strict=True))
+    take_c, sp_c = _second_corner(axis, q, axisdir, clcorner, bsp)
+    take_e, sp_e = _second_edge(axis, halfaxis, size2, q, axisdir, clcorner, cledge, bsp,
+                                bestboxpos)
+    take_f, sp_f = _second_face(pos, halfaxis, size2, cltype, clface)
+    on_edge = cltype >= 0
+    mid_edge = (cltype >= 3) & (cltype <= 5)
+    secondpos = jnp.where(
+        on_edge & ~mid_edge & take_c, sp_c,
+        jnp.where(mid_edge & take_e, sp_e,
+                  jnp.where(~on_edge & take_f, sp_f, -4.0)))
+    best = {"bestdist": bestdist, "cltype": cltype, "clface": clface, "clcorner": clcorner,
+            "cledge": cledge, "bestboxpos": bestboxpos, "bestsegmentpos": bsp}
+    found, bsp, secondpos = stage((cltype != -4, bsp, secondpos), one)
+    return found, bsp, secondpos, halfaxis, best
 
 
 def segment_points(pos, axis, size1, size2, margin):
@@ -314,44 +434,31 @@ def segment_points(pos, axis, size1, size2, margin):
       none); and the search's winner (dict: cltype, clface, clcorner, cledge,
       bestboxpos, bestdist), for tests.
     """
-    halfaxis = _mul(axis, size1[1])
-    # The octant of the axis (bit k: halfaxis[k] > 0); 7 - axisdir is the same line.
-    axisdir = ((halfaxis[0] > 0).astype(jnp.int32) + 2 * (halfaxis[1] > 0).astype(jnp.int32)
-               + 4 * (halfaxis[2] > 0).astype(jnp.int32))
-    bestdistmax = margin + 2 * (size1[0] + size1[1] + size2[0] + size2[1] + size2[2])
+    one = opaque_one(pos[0])
+    found, bsp, secondpos, _, best = _segment_points(
+        *stage((unpack(pos), unpack(axis), unpack(size1), unpack(size2)), one), margin, one)
+    return found, bsp, secondpos, best
 
-    best = _face_candidates(pos, halfaxis, size2, bestdistmax)
-    best["bestboxpos"] = jnp.zeros_like(bestdistmax)
-    best["clcorner"] = jnp.int32(0)
-    best["cledge"] = jnp.int32(0)
-    for j in range(3):
-        for i in range(8):
-            if i & (1 << j):
-                continue
-            ok, dist2, x1, x2, c1 = _edge_candidate(j, i, pos, halfaxis, size1, size2)
-            # N.B. C's "- mjMINVAL" keeps a face (or earlier edge) on near-ties
-            # when the axis is numerically parallel to the box.
-            better = ok & (dist2 < best["bestdist"] - _MINVAL)
-            new = {"bestdist": dist2, "bestsegmentpos": x2, "bestboxpos": x1,
-                   "clcorner": jnp.int32(i) + (1 << j) * (c1 // 6),
-                   "cledge": jnp.int32(j), "cltype": c1, "clface": best["clface"]}
-            best = {key: jnp.where(better, new[key], best[key]) for key in best}
-    # N.B. C's dead block after the edge tests (a 2-D search in the xy plane
-    # whose results are never read) is left out.
 
-    cltype = best["cltype"]
-    bsp = best["bestsegmentpos"]
-    take_c, sp_c = _second_corner(axis, halfaxis, size2, axisdir, best["clcorner"], bsp)
-    take_e, sp_e = _second_edge(axis, halfaxis, size2, axisdir, best["clcorner"],
-                                best["cledge"], bsp, best["bestboxpos"])
-    take_f, sp_f = _second_face(pos, halfaxis, size2, cltype, best["clface"])
-    on_edge = cltype >= 0
-    mid_edge = on_edge & (cltype // 3 == 1)
-    secondpos = jnp.where(
-        on_edge & ~mid_edge & take_c, sp_c,
-        jnp.where(mid_edge & take_e, sp_e,
-                  jnp.where(~on_edge & take_f, sp_f, -4.0)))
-    return cltype != -4, bsp, secondpos, best
+def box_frame(pos1, mat1, pos2, mat2):
+    """The capsule's centre and axis in the box's frame, as C computes them.
+
+    Args:
+      pos1: (3,) the capsule's position.
+      mat1: (3, 3) the capsule's orientation.
+      pos2: (3,) the box's position.
+      mat2: (3, 3) the box's orientation.
+
+    Returns:
+      (pos (3,), axis (3,)).
+    """
+    m2 = unpack(mat2)
+    m2 = (m2[0:3], m2[3:6], m2[6:9])
+    m1 = unpack(mat1)
+    p1, p2 = unpack(pos1), unpack(pos2)
+    pos = mat_t_vec_s(m2, tuple(a - b for a, b in zip(p1, p2, strict=True)))
+    axis = mat_t_vec_s(m2, (m1[2], m1[5], m1[8]))
+    return jnp.stack(pos), jnp.stack(axis)
 
 
 @collider(2)
@@ -372,28 +479,32 @@ def capsule_box(info1, info2, margin):
       dist (2,), pos (2, 3), frame (2, 3, 3); slots C does not fill have
       dist = `FAR`.
     """
-    pos1, mat1, size1 = info1.pos, info1.mat, info1.size
-    pos2, mat2, size2 = info2.pos, info2.mat, info2.size
+    one = opaque_one(info1.pos[0] + info2.pos[0])
+    pos1, size1, m1, pos2, size2, m2 = stage(
+        tuple(unpack(x) for x in (info1.pos, info1.size, info1.mat, info2.pos, info2.size,
+                                  info2.mat)), one)
+    mat2 = (m2[0:3], m2[3:6], m2[6:9])
 
     # Capsule in the box's frame.
-    pos = _mul_mat_t_vec(mat2, pos1 - pos2)
-    axis = _mul_mat_t_vec(mat2, mat1[:, 2])
-    halfaxis = _mul(axis, size1[1])
-    found, bsp, secondpos, _ = segment_points(pos, axis, size1, size2, margin)
+    pos = mat_t_vec_s(mat2, tuple(a - b for a, b in zip(pos1, pos2, strict=True)))
+    axis = mat_t_vec_s(mat2, (m1[2], m1[5], m1[8]))
+    pos, axis = stage((pos, axis), one)
+    found, bsp, secondpos, halfaxis, _ = _segment_points(pos, axis, size1, size2, margin, one)
 
     def sphere_at(t):
         # N.B. C goes back to the world frame and sphere-box comes back to the
         # box's: kept, for C's rounding.
-        centre = _mul_mat_vec(mat2, pos + _mul(halfaxis, t)) + pos2
-        return sphere_box(centre, size1[0], margin, pos2, mat2, size2)
+        local = tuple(p + mul(h, t) for p, h in zip(pos, halfaxis, strict=True))
+        centre = tuple(c + p for c, p in zip(mat_vec_s(mat2, local), pos2, strict=True))
+        return _sphere_box(centre, size1[0], margin, pos2, mat2, size2, one)
 
-    em1, d1, p1, n1 = sphere_at(bsp)
-    em2, d2, p2, n2 = sphere_at(secondpos + bsp)
+    em1, d1, p1, n1 = stage(sphere_at(bsp), one)
+    em2, d2, p2, n2 = stage(sphere_at(secondpos + bsp), one)
     em1 = em1 & found
     em2 = em2 & found & (secondpos > -3)
     dist = jnp.stack([jnp.where(em1, d1, FAR), jnp.where(em2, d2, FAR)])
-    pos_out = jnp.stack([p1, p2])
-    frame = jnp.stack([make_frame(n1), make_frame(n2)])
+    pos_out = jnp.stack([jnp.stack(p1), jnp.stack(p2)])
+    frame = jnp.stack([frame_s(n1), frame_s(n2)])
     return dist, pos_out, frame
 
 
