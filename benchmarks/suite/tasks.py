@@ -126,6 +126,26 @@ def _ends_in_any(body: str, zones: dict[str, str]):
     return predicate
 
 
+def _each_ends_in(bodies: dict[str, str], zones: dict[str, str]):
+    """Success: some body's centre ends inside a box site; label = which ends where.
+
+    The label joins `body_zone` for every body that ends in a zone, in the
+    order of `bodies` (e.g. "a_north+b_south").
+    """
+    checks = {name: _ends_in_any(body, zones) for name, body in bodies.items()}
+
+    def predicate(replay):
+        parts = []
+        for name, check in checks.items():
+            ok, zone = check(replay)
+            parts.append(np.where(ok, np.char.add(f"{name}_", zone.astype(str)), ""))
+        label = np.array(["+".join(p for p in row if p) for row in zip(*parts, strict=True)],
+                        dtype=object)
+        return label != "", label
+
+    return predicate
+
+
 def _ends_in_box(body: str, sites: dict[str, str]):
     """Success: the body's centre ends inside one of several box sites (3-D); label = which."""
 
@@ -337,6 +357,55 @@ def wedges() -> Task:
     return task
 
 
+def crate_ledge() -> Task:
+    """Box-box contacts: a pusher pushes a crate off a raised ledge into a landing zone.
+
+    θ = two via points (x, y in m) of the pusher's servo reference, reached at
+    40% and 80% of the horizon. Task plan = whether the crate touches the
+    block and the fence (box-box), whether the pusher touches the block, and
+    the zone the crate lands in (the edge it goes over: north, east or south).
+    """
+    scene = _scene("crate_ledge")
+    task = Task("crate_ledge", scene, horizon=_steps(scene, 2.0),
+                description="push the crate off the ledge into a zone; task plan = block "
+                "and fence touched, edge")
+    task.box("via", low=[-0.2, -0.35] * 2, high=[0.5, 0.35] * 2)
+    start = scene.m.body_pos[scene.body("pusher")][:2]
+    task.controls(_via_points("via", start, times=[0.4, 0.8], horizon=task.horizon))
+    task.contact("crate_block", "crate", "block")
+    task.contact("crate_fence", "crate", "fence")
+    task.contact("pusher_block", "pusher", "block")
+    zones = {"north": "zone_north", "east": "zone_east", "south": "zone_south"}
+    task.cost("aim", costs.aim("pusher", "crate"))
+    task.cost("zone", costs.reach("crate", list(zones.values()), when="final"))
+    task.success(_ends_in_any("crate", zones))
+    task.display(trace=["crate", "pusher"], force=[("pusher", "crate")])
+    return task
+
+
+def cans() -> Task:
+    """Cylinder contacts: two cans roll down a ramp, between blocks, to rest in zones.
+
+    θ = where each can is let go across the ramp (y of can a, then can b, in
+    m; both start at rest). Task plan = whether the cans touch each other,
+    and which can ends in which zone. N.B. the blocks cannot be symbols:
+    mjstamp.scenes.distance has no cylinder-box signed distance.
+    """
+    scene = _scene("cans")
+    task = Task("cans", scene, horizon=_steps(scene, 2.5),
+                description="roll the cans to rest in the zones; task plan = cans touch, "
+                "which can ends where")
+    task.box("release", low=[-0.24, -0.24], high=[0.24, 0.24],
+             initial_qpos=[("can_a", 1), ("can_b", 1)])
+    task.contact("a_b", "can_a", "can_b")
+    zones = {"north": "zone_north", "south": "zone_south"}
+    reach = [costs.reach(can, list(zones.values()), when="final") for can in ("can_a", "can_b")]
+    task.cost("zone", lambda r: jnp.minimum(*(f(r) for f in reach)))  # either can
+    task.success(_each_ends_in({"a": "can_a", "b": "can_b"}, zones))
+    task.display(trace=["can_a", "can_b"])
+    return task
+
+
 SUITE: dict[str, Callable[[], Task]] = {
     "rolling_ball": rolling_ball,
     "pachinko": pachinko,
@@ -345,6 +414,8 @@ SUITE: dict[str, Callable[[], Task]] = {
     "pusher": pusher,
     "bank_shot": bank_shot,
     "wedges": wedges,
+    "crate_ledge": crate_ledge,
+    "cans": cans,
 }
 
 def source_salt(name: str) -> str:
