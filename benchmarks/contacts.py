@@ -6,10 +6,11 @@ random sizes, relative poses and margins around contact
 less than the margin, a few misses, a fifth axis-aligned) and collides each
 draw in MuJoCo C and in MJX, once with MJX's own collision function and once
 with the installed table (mjstamp's ports of C's routines where there are
-any). Prints, per pair and engine, the draws whose number of active contacts
-differs from C's and the worst difference of distance, position, normal and
-frame over the rest, and the time per pair-collision (jitted, vmapped over
-the draws, median of 3).
+any; `contacts.exact_meshes()` is on here, so the mesh pairs MJX collides
+itself by default are measured with their ports too). Prints, per pair and
+engine, the draws whose number of active contacts differs from C's and the
+worst difference of distance, position, normal and frame over the rest, and
+the time per pair-collision (jitted, vmapped over the draws, median of 3).
 
 Usage: python benchmarks/contacts.py [--pairs box-box,plane-box] [--draws 10000]
        [--seed 1] [--json] [--save FILE]
@@ -118,7 +119,10 @@ def main(argv: list[str] | None = None) -> int:
     import mjstamp
 
     mjstamp.configure(precision="float64")
+    from mjstamp.scenes import contacts
     from mjstamp.scenes.contacts import compare
+
+    contacts.exact_meshes()
 
     names = [p.strip() for p in args.pairs.split(",") if p.strip()]
     for name in names:

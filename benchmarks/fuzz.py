@@ -746,12 +746,16 @@ def fuzz_contacts(n: int, *, seed: int = 0, progress=None) -> dict:
     Per geom-type pair over all scenes: the states whose number of active
     contacts differs, and the worst field difference, against `CONTACT_TOL`.
     Scenes with a geom gap are counted apart (MJX ignores `gap`: it includes
-    contacts up to the margin, C up to margin - gap).
+    contacts up to the margin, C up to margin - gap). Every port is measured:
+    `contacts.exact_meshes()` is on (mesh pairs MJX collides itself by default
+    use C's GJK/EPA here).
     """
     import mujoco
 
-    from mjstamp.scenes import Scene
+    from mjstamp.scenes import Scene, contacts
     from mjstamp.scenes.contacts import compare
+
+    contacts.exact_meshes()
 
     say = progress or (lambda _msg: None)
     rng = np.random.default_rng(seed)

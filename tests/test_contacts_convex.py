@@ -31,6 +31,30 @@ TOL = 1e-9
 @pytest.fixture(scope="module", autouse=True)
 def _patched():
     contacts.patch_collisions()
+    contacts.exact_meshes()
+    yield
+    contacts.exact_meshes(False)
+
+
+def test_mesh_pairs_mjx_collides_keep_mjx_by_default():
+    """sphere-, capsule-, box- and mesh-mesh: MJX's own unless exact_meshes (and reported so)."""
+    from mujoco.mjx._src import collision_driver
+
+    table = collision_driver._COLLISION_FUNC  # pylint: disable=protected-access
+    opt_in = {(2, 7), (3, 7), (6, 7), (7, 7)}
+    contacts.exact_meshes(False)
+    try:
+        before = contacts.table_version()
+        for pair in opt_in:
+            assert table[pair] is not contacts.PORTED[pair]
+            assert not contacts.is_exact(*pair)
+        for pair in ((5, 7), (4, 7), (0, 7), (5, 6)):  # MJX has none, or it is plane-mesh
+            assert table[pair] is contacts.PORTED[pair] and contacts.is_exact(*pair)
+    finally:
+        contacts.exact_meshes()
+    assert contacts.table_version() != before
+    assert all(table[pair] is contacts.PORTED[pair] and contacts.is_exact(*pair)
+               for pair in opt_in)
 
 
 def _check(pair: str, n: int, seed: int) -> None:

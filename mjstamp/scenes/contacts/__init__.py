@@ -21,6 +21,20 @@ A collider here has MJX's signature plus the pair's contact parameters:
 ``fn.ncon`` slots per pair and ``fn.takes_contact = True``: C's routines take
 the pair's margin (which MJX's do not), to emit contacts within it; the
 contact's ``includemargin`` holds what C passes its colliders, margin + gap.
+
+Which ports a Scene installs. Every port gives C's contacts (`benchmarks/contacts.py`:
+10,000 random poses per pair), but those through C's GJK/EPA (`convex`) cost
+0.7-2 ms per pair-collision on the 2-core CPU against MJX's 0.3-20 µs: their
+loops run a fixed number of trips so that reverse-mode AD goes through. Where
+MJX has no function (cylinder-box, ellipsoid-box, cylinder- and
+ellipsoid-mesh) or a wrong one (its 10-step signed-distance descent for
+cylinder and ellipsoid pairs: contacts off by 6-34 cm on 4-6% of poses) the
+port is installed anyway. For the four mesh pairs MJX collides with its own
+convex routines (sphere-, capsule-, box- and mesh-mesh, measured off C on
+0.1-30% of poses), MJX's function stays by default: those pairs are reported
+as approximate (`approximate_pairs`, `mjstamp check`, the solve's fidelity
+check and warning), and `exact_meshes()` installs C's for them (a price of
+roughly a thousand on those pairs' collisions).
 """
 
 from __future__ import annotations
@@ -41,6 +55,7 @@ __all__ = [
     "approximate_pairs",
     "collider",
     "describe_pair",
+    "exact_meshes",
     "is_patched",
     "mjx_own",
     "pair_info",
@@ -54,6 +69,7 @@ FAR = 1e10
 
 _PATCHED = False
 _VERSION = 0
+_EXACT_MESHES = False
 _ORIGINAL: dict[tuple[int, int], Callable | None] = {}
 
 # (type1, type2) in mjtGeom order -> collider, filled by the modules below.
@@ -166,11 +182,42 @@ def patch_collisions() -> None:
     table = collision_driver._COLLISION_FUNC  # pylint: disable=protected-access
     for pair, fn in PORTED.items():
         _ORIGINAL[pair] = table.get(pair)
-        table[pair] = fn
+        if _installs(pair, fn):
+            table[pair] = fn
     collision_driver.collision = collide
     _patch_mjx_collision(collide)
     _PATCHED = True
     _VERSION += 1
+
+
+def _installs(pair: tuple[int, int], fn: Callable) -> bool:
+    """Whether `patch_collisions` puts this port in the table (see the module docstring)."""
+    return _EXACT_MESHES or not (getattr(fn, "opt_in", False) and _ORIGINAL.get(pair))
+
+
+def exact_meshes(on: bool = True) -> None:
+    """Collides sphere-, capsule-, box- and mesh-mesh pairs with C's GJK/EPA ports (or not).
+
+    By default MJX's own functions collide these pairs (fast, approximate,
+    reported as such); with ``on`` the ports do, exactly as MuJoCo C and about
+    a thousand times slower per pair-collision. Affects what is traced from
+    now on (compiled rollouts keep their table; `table_version` changes).
+    """
+    global _EXACT_MESHES, _VERSION
+    _EXACT_MESHES = bool(on)
+    if not _PATCHED:
+        return
+    from mujoco.mjx._src import collision_driver  # pylint: disable=g-import-not-at-top
+
+    table = collision_driver._COLLISION_FUNC  # pylint: disable=protected-access
+    for pair, fn in PORTED.items():
+        if not getattr(fn, "opt_in", False):
+            continue
+        if _installs(pair, fn):
+            table[pair] = fn
+        else:
+            table[pair] = _ORIGINAL[pair]
+    _VERSION = (abs(_VERSION) + 1) * (1 if _VERSION >= 0 else -1)
 
 
 def _patch_mjx_collision(collide) -> None:

@@ -310,6 +310,9 @@ _PAIRS = [(CAPSULE, CYLINDER), (CYLINDER, CYLINDER), (CYLINDER, BOX),
           (MESH, MESH), (PLANE, MESH)]
 
 
+_OPT_IN = {(SPHERE, MESH), (CAPSULE, MESH), (BOX, MESH), (MESH, MESH)}
+
+
 def _make(t1: int, t2: int):
     ncon = ncon_of(t1, t2)
     has_mesh = MESH in (t1, t2)
@@ -344,6 +347,8 @@ def _make(t1: int, t2: int):
     cname = "PlaneConvex" if t1 == PLANE else "Convex"
     collide.__doc__ = f"mjc_{cname} (C 3.17) as an MJX collider."
     collide.needs_mesh = has_mesh
+    # MJX's own function stays for these unless `contacts.exact_meshes()` (see contacts)
+    collide.opt_in = (t1, t2) in _OPT_IN
     return collide
 
 
