@@ -107,6 +107,26 @@ def _line(row: dict) -> str:
     return " | ".join(out)
 
 
+def _save(path: Path, rows: list[dict], args) -> None:
+    """Writes the rows measured so far into `path`, replacing its rows of the same pairs.
+
+    N.B. after every pair, so that a long run keeps what it measured; rows of
+    other pairs already in the file (another run, the same draws and seed) stay.
+    """
+    from mjstamp.fileio import write_atomic
+
+    old = json.loads(path.read_text()) if path.exists() else {}
+    keep = []
+    if (old.get("draws"), old.get("seed")) == (args.draws, args.seed):
+        done = {r["pair"] for r in rows}
+        keep = [r for r in old.get("pairs", []) if r["pair"] not in done]
+    order = {name: i for i, name in enumerate(PAIRS)}
+    merged = sorted(keep + rows, key=lambda r: order.get(r["pair"], len(order)))
+    out = {"draws": args.draws, "seed": args.seed, "precision": "float64", "pairs": merged}
+    payload = json.dumps(out, indent=1).encode()
+    write_atomic(path, lambda f: f.write(payload))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Runs the comparison of the pairs asked for and prints a line (or JSON) per pair."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -114,7 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--draws", type=int, default=10_000)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--save", metavar="FILE", help="also write the JSON there")
+    parser.add_argument("--save", metavar="FILE",
+                        help="also write the JSON there, after each pair (merged with the "
+                        "file's rows of other pairs, same draws and seed)")
     args = parser.parse_args(argv)
     import mjstamp
 
@@ -134,12 +156,9 @@ def main(argv: list[str] | None = None) -> int:
         rows[-1]["seconds"] = time.perf_counter() - t0
         if not args.json:
             print(_line(rows[-1]), flush=True)
+        if args.save:
+            _save(Path(args.save), rows, args)
     out = {"draws": args.draws, "seed": args.seed, "precision": "float64", "pairs": rows}
-    if args.save:
-        from mjstamp.fileio import write_atomic
-
-        payload = json.dumps(out, indent=1).encode()
-        write_atomic(Path(args.save), lambda f: f.write(payload))
     if args.json:
         print(json.dumps(out))
     return 0
