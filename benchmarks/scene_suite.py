@@ -190,8 +190,9 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
     random_n = row["random_task_plans"]
     row["targets_particles"] = {  # issue 11 (particles that do their job)
         "verified_particle_share": row["verified_particle_share"] >= TARGET_PARTICLE_SHARE,
-        "at_least_random": random_n is not None and len(found) >= random_n,
-        "twice_random": random_n is not None and len(found) >= 2 * random_n,
+        # N.B. None (not run) where --no-random skipped the random search
+        "at_least_random": None if random_n is None else len(found) >= random_n,
+        "twice_random": None if random_n is None else len(found) >= 2 * random_n,
     }
     row["targets_contacts"] = {  # issue 28
         "accepted_without_warning": refused is None and not warned,
@@ -283,8 +284,9 @@ def format_rows(rows: list[dict]) -> str:
         if r.get("error"):
             continue
         met = r["targets_particles"]
-        lines.append(f"{r['scene']}: " + ", ".join(f"{k} {'met' if v else 'missed'}"
-                                                 for k, v in met.items()))
+        lines.append(f"{r['scene']}: " + ", ".join(
+            f"{k} {'not run' if v is None else 'met' if v else 'missed'}"
+            for k, v in met.items()))
     for r in rows:
         if r["missed_min_share"]:
             lines.append(f"{r['scene']}: missed {', '.join(r['missed_min_share'])}")
