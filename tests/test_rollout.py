@@ -109,3 +109,12 @@ def test_controls_required_where_the_scene_has_actuators(pushing):
     qpos0, qvel0 = pushing.initial_state()
     with pytest.raises(MjstampError, match=r"ctrl is missing.*\(1, 10, 6\)"):
         pushing.rollout_fn(10)(qpos0[None], qvel0[None])
+
+
+def test_replay_needs_controls_or_a_horizon(billiards):
+    """One line naming the caller (replay, calibrate and stepjac share the check)."""
+    qpos0, qvel0 = _billiards_shots(billiards, 2)
+    with pytest.raises(MjstampError, match="^replay needs ctrl or horizon$"):
+        replay(billiards, qpos0, qvel0)
+    out = replay(billiards, qpos0, qvel0, horizon=3, fields=("qpos",))
+    assert out["qpos"].shape == (2, 3, billiards.m.nq)

@@ -43,7 +43,7 @@ import numpy as np
 
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import write_atomic
-from mjstamp.scenes.rollout import replay
+from mjstamp.scenes.rollout import controls, replay
 
 CACHE = Path.home() / ".cache" / "mjstamp" / "fidelity"
 SHARE = 0.95
@@ -279,11 +279,7 @@ def calibrate(
         raise MjstampError(f"max_solver_iterations={max_iterations} must be >= 1")
     qpos0 = np.asarray(qpos0, np.float64)
     qvel0 = np.asarray(qvel0, np.float64)
-    if ctrl is None:
-        if horizon is None:
-            raise MjstampError("calibrate needs ctrl or horizon")
-        ctrl = np.zeros((len(qpos0), int(horizon), scene.m.nu))
-    ctrl = np.asarray(ctrl, np.float64)
+    ctrl = controls(ctrl, horizon, len(qpos0), scene.m.nu, who="calibrate")
     todo = _settings(scene, candidates, own, budget)
     path = CACHE / f"{scene.name}-{_key(scene, (qpos0, qvel0, ctrl), tolerance, todo)}.json"
     if cache and path.is_file():

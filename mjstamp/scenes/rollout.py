@@ -242,6 +242,19 @@ def replay(
     return replay_model(m, qpos0, qvel0, ctrl, horizon=horizon, fields=fields, models=models)
 
 
+def controls(ctrl, horizon: int | None, n: int, nu: int, *, who: str) -> np.ndarray:
+    """(n, T, nu) float64 controls: `ctrl`, or zeros over `horizon` steps where it is None.
+
+    Raises:
+      MjstampError: neither is given (`who` names the caller in the line).
+    """
+    if ctrl is None:
+        if horizon is None:
+            raise MjstampError(f"{who} needs ctrl or horizon")
+        return np.zeros((n, int(horizon), nu))
+    return np.asarray(ctrl, np.float64)
+
+
 def replay_model(
     m: mujoco.MjModel,
     qpos0,
@@ -262,11 +275,7 @@ def replay_model(
             f"replay needs qpos0 ({n}, {m.nq}) and qvel0 ({n}, {m.nv}); got "
             f"{qpos0.shape} and {qvel0.shape}"
         )
-    if ctrl is None:
-        if horizon is None:
-            raise MjstampError("replay needs ctrl or horizon")
-        ctrl = np.zeros((n, int(horizon), m.nu))
-    ctrl = np.asarray(ctrl, np.float64)
+    ctrl = controls(ctrl, horizon, n, m.nu, who="replay")
     T = ctrl.shape[1]
     if models is not None and len(models) != n:
         raise MjstampError(f"replay got {len(models)} models for {n} states; valid: one each")

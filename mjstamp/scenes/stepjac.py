@@ -97,7 +97,7 @@ from mjstamp.errors import MjstampError, valid_list
 from mjstamp.parallel import local_device
 from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
-from mjstamp.scenes.rollout import cast_floats, replay
+from mjstamp.scenes.rollout import cast_floats, controls, replay
 
 CHAININGS = ("sweep", "scan", "vjp")
 SOLUTIONS = ("mjx", "c")
@@ -223,11 +223,7 @@ def c_trajectory(scene, qpos0, qvel0, ctrl=None, *, horizon: int | None = None) 
     """
     qpos0 = np.asarray(qpos0, np.float64)
     qvel0 = np.asarray(qvel0, np.float64)
-    if ctrl is None:
-        if horizon is None:
-            raise MjstampError("c_trajectory needs ctrl or horizon")
-        ctrl = np.zeros((len(qpos0), int(horizon), scene.m.nu))
-    ctrl = np.asarray(ctrl, np.float64)
+    ctrl = controls(ctrl, horizon, len(qpos0), scene.m.nu, who="c_trajectory")
     out = replay(scene, qpos0, qvel0, ctrl, fields=("qpos", "qvel"), solver="scene")
     return Trajectory(np.concatenate([qpos0[:, None], out["qpos"]], axis=1),
                       np.concatenate([qvel0[:, None], out["qvel"]], axis=1), ctrl)
