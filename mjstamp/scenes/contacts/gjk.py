@@ -34,6 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from mjstamp.scenes.contacts import cmath
+
 # mjtGeom
 PLANE, HFIELD, SPHERE, CAPSULE, ELLIPSOID, CYLINDER, BOX, MESH = range(8)
 
@@ -121,10 +123,8 @@ def div3(v, s):
     return jnp.stack([v[..., 0] / s, v[..., 1] / s, v[..., 2] / s], axis=-1)
 
 
-def safe_sqrt(x):
-    """sqrt(x), 0 with a zero gradient at x <= 0."""
-    ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+# sqrt(x), 0 with a zero gradient at x <= 0: the ports' shared one.
+safe_sqrt = cmath.sqrt
 
 
 def normalize3(v):
