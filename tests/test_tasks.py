@@ -36,6 +36,22 @@ def test_declaration_errors_name_the_culprit(tiny_xml):
         task.check()
 
 
+def test_cost_names_are_looked_up_where_the_cost_is_declared(tiny_xml):
+    """A misspelt body or site fails at `Task.cost` / `Task.success`, not at solve time."""
+    task = Task("tiny", Scene(tiny_xml(), name="tiny"), horizon=10)
+    with pytest.raises(MjstampError) as e:
+        task.cost("c", costs.reach("pukc", ["goal"]))
+    msg = str(e.value)
+    assert "task 'tiny': cost 'c': unknown body 'pukc'" in msg and "puck" in msg
+    assert "\n" not in msg and not task.costs
+    with pytest.raises(MjstampError, match="success: unknown site 'gaol'.*valid: goal"):
+        task.success(costs.reaches("puck", {"g": "gaol"}, radius=0.1))
+    with pytest.raises(MjstampError, match="cost 'a': unknown geom 'cue'"):
+        task.cost("a", costs.aim("cue", "puck"))
+    task.cost("c", costs.reach("puck", ["goal"]))
+    assert callable(task.costs[0].fn) and not isinstance(task.costs[0].fn, costs.Bound)
+
+
 def test_registry_errors():
     assert "billiards" in tasks.names()
     with pytest.raises(MjstampError, match="unknown task 'nope'; valid: billiards"):

@@ -3,17 +3,47 @@
 Costs are functions of a `Rollout` returning (n,) values; any JAX function of
 the rollout works the same way. Success predicates are functions of a
 `plans.Replay` (numpy) returning (ok (n,) bool, label (n,) str).
+
+Each factory here returns a `Bound`: its body, site and geom names are looked
+up once, in the scene, when `Task.cost` or `Task.success` is given it (hydrax
+resolves ids in its task's constructor), so a misspelt name fails where the
+user wrote it, in one line listing the valid names; the function the solve
+traces holds ids, not names.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from mjstamp import relax
+
+
+@dataclasses.dataclass(frozen=True)
+class Bound:
+    """A cost or predicate whose scene names are resolved once: `bind(scene)` -> function.
+
+    `Task.cost` and `Task.success` bind it to their scene. Called unbound (a
+    predicate inside a user's own success function), it binds to the scene of
+    what it is called on, every call. A dataclass, so that a task's fingerprint
+    hashes it by content (`mjstamp.tasks.fingerprint`).
+
+    Attributes:
+      make: scene -> the function, its names looked up in that scene.
+    """
+
+    make: Callable
+
+    def bind(self, scene) -> Callable:
+        """The function on `scene`, with its names looked up there (MjstampError if unknown)."""
+        return self.make(scene)
+
+    def __call__(self, x):  # noqa: D102 - the class docstring says it: bound on x's scene
+        return self.make(x.scene)(x)
 
 
 def aim(geom1: str, geom2: str, *, temperature: float | None = None):
@@ -37,14 +67,19 @@ def aim(geom1: str, geom2: str, *, temperature: float | None = None):
       STAMP App. B-D.
     """
 
-    def cost(r):
-        sd = r.signed_distance(geom1, geom2)
-        tau = 0.1 * r.scene.length_scale if temperature is None else temperature
-        return relax.softmin_aggregate(
-            jax.nn.relu(sd), mask=r.until_contact(geom1, geom2), temperature=tau
-        )
+    def make(scene):
+        g1, g2 = scene.geom(geom1), scene.geom(geom2)
+        tau = 0.1 * scene.length_scale if temperature is None else temperature
 
-    return cost
+        def cost(r):
+            sd = r.signed_distance(g1, g2)
+            return relax.softmin_aggregate(
+                jax.nn.relu(sd), mask=r.until_contact(g1, g2), temperature=tau
+            )
+
+        return cost
+
+    return Bound(make)
 
 
 def reach(
@@ -76,16 +111,21 @@ def reach(
 
     axes = list(axes)
 
-    def cost(r):
-        x = r.body_pos(body)[..., axes]
-        goals = jnp.stack([r.site_pos(s)[..., axes] for s in sites], axis=-2)  # (n, T, g, a)
-        d2 = jnp.min(jnp.sum((x[:, :, None] - goals) ** 2, axis=-1), axis=-1)  # (n, T)
-        if when == "final":
-            return d2[:, -1]
-        tau = (r.scene.length_scale / 20) ** 2 if temperature is None else temperature
-        return relax.softmin_aggregate(d2, temperature=tau)
+    def make(scene):
+        b, goal_sites = scene.body(body), [scene.site(s) for s in sites]
+        tau = (scene.length_scale / 20) ** 2 if temperature is None else temperature
 
-    return cost
+        def cost(r):
+            x = r.body_pos(b)[..., axes]
+            goals = jnp.stack([r.site_pos(s)[..., axes] for s in goal_sites], axis=-2)
+            d2 = jnp.min(jnp.sum((x[:, :, None] - goals) ** 2, axis=-1), axis=-1)  # (n, T)
+            if when == "final":
+                return d2[:, -1]
+            return relax.softmin_aggregate(d2, temperature=tau)
+
+        return cost
+
+    return Bound(make)
 
 
 def reaches(
@@ -105,21 +145,26 @@ def reaches(
       fn(replay) -> (ok (n,) bool, label (n,) str; "" where not reached).
     """
     axes = list(axes)
+    labels = list(goals)
 
-    def predicate(replay):
-        x = replay.body_pos(body)[..., axes]  # (n, T, a)
-        labels = list(goals)
-        inside = np.stack(
-            [np.linalg.norm(x - replay.site_pos(goals[k])[..., axes], axis=-1) < radius
-             for k in labels], axis=-1)  # (n, T, g)
-        hit_any = inside.any(axis=-1)
-        ok = hit_any.any(axis=1)
-        first_t = np.argmax(hit_any, axis=1)
-        which = np.argmax(inside[np.arange(len(ok)), first_t], axis=-1)
-        label = np.where(ok, np.asarray(labels, dtype=object)[which], "")
-        return ok, label
+    def make(scene):
+        b, goal_sites = scene.body(body), [scene.site(goals[k]) for k in labels]
 
-    return predicate
+        def predicate(replay):
+            x = replay.body_pos(b)[..., axes]  # (n, T, a)
+            inside = np.stack(
+                [np.linalg.norm(x - replay.site_pos(s)[..., axes], axis=-1) < radius
+                 for s in goal_sites], axis=-1)  # (n, T, g)
+            hit_any = inside.any(axis=-1)
+            ok = hit_any.any(axis=1)
+            first_t = np.argmax(hit_any, axis=1)
+            which = np.argmax(inside[np.arange(len(ok)), first_t], axis=-1)
+            label = np.where(ok, np.asarray(labels, dtype=object)[which], "")
+            return ok, label
+
+        return predicate
+
+    return Bound(make)
 
 
 def box_target(body: str, site: str, *, margin: float = 0.0):
@@ -133,13 +178,19 @@ def box_target(body: str, site: str, *, margin: float = 0.0):
       STAMP App. C-C (L_target).
     """
 
-    def cost(r):
-        x = r.body_pos(body)[:, -1, :2]
-        c = r.site_pos(site)[:, -1, :2]
-        half = jnp.asarray(r.scene.m.site_size[r.scene.site(site), :2] - margin, x.dtype)
-        return jnp.sum(jax.nn.relu(jnp.abs(x - c) - half) ** 2, axis=-1)
+    def make(scene):
+        b, s = scene.body(body), scene.site(site)
+        half_size = scene.m.site_size[s, :2] - margin
 
-    return cost
+        def cost(r):
+            x = r.body_pos(b)[:, -1, :2]
+            c = r.site_pos(s)[:, -1, :2]
+            half = jnp.asarray(half_size, x.dtype)
+            return jnp.sum(jax.nn.relu(jnp.abs(x - c) - half) ** 2, axis=-1)
+
+        return cost
+
+    return Bound(make)
 
 
 def ends_in(body: str, site: str):
@@ -149,11 +200,16 @@ def ends_in(body: str, site: str):
       fn(replay) -> (ok (n,) bool, label (n,) str, always "").
     """
 
-    def predicate(replay):
-        x = replay.body_pos(body)[:, -1, :2]
-        c = replay.site_pos(site)[:, -1, :2]
-        half = replay.scene.m.site_size[replay.scene.site(site), :2]
-        ok = np.all(np.abs(x - c) <= half, axis=-1)
-        return ok, np.full(len(ok), "", dtype=object)
+    def make(scene):
+        b, s = scene.body(body), scene.site(site)
+        half = np.array(scene.m.site_size[s, :2])
 
-    return predicate
+        def predicate(replay):
+            x = replay.body_pos(b)[:, -1, :2]
+            c = replay.site_pos(s)[:, -1, :2]
+            ok = np.all(np.abs(x - c) <= half, axis=-1)
+            return ok, np.full(len(ok), "", dtype=object)
+
+        return predicate
+
+    return Bound(make)

@@ -32,6 +32,7 @@ from mjstamp import svgd
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
 from mjstamp.scenes.scene import Scene
+from mjstamp.tasks import costs
 from mjstamp.tasks import fingerprint as fp
 from mjstamp.tasks.declaration import (
     Contact,
@@ -299,8 +300,11 @@ class Task:
         self.contacts.append(Contact(name, g1, g2, pair, float(alpha), float(beta)))
 
     def cost(self, name: str, fn: Callable[[Rollout], jax.Array], weight: float = 1.0):
-        """Adds weight · fn(rollout) to the cost C (likelihood, eq. 8); fn -> (n,)."""
-        self._add_term(self.costs, name, fn, weight, "cost")
+        """Adds weight · fn(rollout) to the cost C (likelihood, eq. 8); fn -> (n,).
+
+        A cost of `mjstamp.tasks.costs` has its names looked up in the scene here.
+        """
+        self._add_term(self.costs, name, self._bind(fn, f"cost {name!r}"), weight, "cost")
 
     def prior(self, name: str, fn: Callable[[dict], jax.Array], weight: float = 1.0):
         """Adds weight · fn(params) to log p(θ) (eq. 7); fn({name: (n, size)}) -> (n,)."""
@@ -338,9 +342,19 @@ class Task:
         """Sets the success predicate on a MuJoCo C replay; see `plans.Replay`.
 
         fn(replay) -> (ok (n,) bool, label (n,) str): whether each plan succeeds
-        and a label that becomes part of its task plan (e.g. the pocket).
+        and a label that becomes part of its task plan (e.g. the pocket). A
+        predicate of `mjstamp.tasks.costs` has its names looked up in the scene here.
         """
-        self.success_fn = fn
+        self.success_fn = self._bind(fn, "success")
+
+    def _bind(self, fn, what: str):
+        """The function with its scene names resolved, where it is a `costs.Bound`; else fn."""
+        if not isinstance(fn, costs.Bound):
+            return fn
+        try:
+            return fn.bind(self.scene)
+        except MjstampError as e:
+            raise MjstampError(f"task {self.name!r}: {what}: {e}") from None
 
     def uncertain(
         self,
