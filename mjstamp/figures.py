@@ -220,8 +220,9 @@ def robustness_figure(result) -> Figure:
     ax = fig.add_subplot()
     robust = result.config.get("solve", {}).get("robust") or 0
     how = f"robust planning, K = {robust}" if robust else "nominal planning"
-    ax.set_title(f"{result.task.name}: plans under uncertain physics ({how}; "
-                 f"{rob['samples']} perturbed replays each)")
+    # N.B. two lines: one ran off a 7-inch figure's right edge ("…32 perturbed repla").
+    ax.set_title(f"{result.task.name}: plans under uncertain physics\n"
+                 f"{how}; {rob['samples']} perturbed replays each")
     ax.set_xlabel("robustness: share of perturbed replays that still succeed")
     ax.set_xlim(-0.03, 1.03)
     if not rows:

@@ -7,6 +7,7 @@ import types
 
 import numpy as np
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PathCollection
 from matplotlib.image import imread
 
@@ -39,11 +40,17 @@ def result(tiny_task):
 
 
 def _is_readable(fig):
-    """Every axes that draws data has a title and x/y labels."""
+    """Every axes that draws data has a title, and every title fits inside the figure."""
     drawn = [ax for ax in fig.axes if ax.get_label() != "<colorbar>" and ax.axison]
     assert drawn
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    titles = [ax.title for ax in drawn] + [t for t in fig.texts if t.get_text()]
     for ax in drawn:
         assert ax.get_title(), ax
+    for title in titles:
+        box = title.get_window_extent(canvas.get_renderer())
+        assert 0 <= box.x0 and box.x1 <= fig.bbox.width, (title.get_text(), box)
     return drawn
 
 
