@@ -89,7 +89,7 @@ def load(path: str | os.PathLike, *, task: str | None = None):
     """Opens a results directory written by `SolveResult.save` or `mjstamp solve --out`.
 
     Returns:
-      `mjstamp.viz.results.Results`: summary (plans.json), model (scene.mjb),
+      `mjstamp.results.Results`: summary (plans.json), model (scene.mjb),
       trajectories (trajectories.npz).
 
     Raises:
@@ -98,7 +98,7 @@ def load(path: str | os.PathLike, *, task: str | None = None):
         damaged file (truncated, not JSON or .npz, missing arrays or keys,
         wrong shapes); always one line naming the file and what to do.
     """
-    from mjstamp.viz.results import load_results  # noqa: PLC0415
+    from mjstamp.results import load_results  # noqa: PLC0415
 
     return load_results(path, task=task)
 

@@ -265,7 +265,7 @@ def _cmd_tasks(args) -> int:
 
 
 def _print_table(summary: dict) -> None:
-    from mjstamp.plans import format_table
+    from mjstamp.results import format_table
 
     print(format_table(summary))
     if "coverage" in summary:
@@ -316,7 +316,7 @@ def _results_dir(args) -> tuple[str | None, bool]:
 
 
 def _cmd_solve(args) -> int:
-    from mjstamp import modes, plans, tasks
+    from mjstamp import modes, results, tasks
     from mjstamp.solve import solve
 
     overrides = _parse_settings(args.task, args.set or [])
@@ -351,7 +351,7 @@ def _cmd_solve(args) -> int:
     if out and not resume and not parallel.is_lead():
         out = None  # N.B. process 0 writes --out; a resume reads the checkpoint everywhere
     if out:
-        plans.check_writable(out)
+        results.check_writable(out)
     task, config = tasks.load(args.task, **overrides)
     progress = None if not args.quiet else False
     every = 30.0 if args.checkpoint_every is None else args.checkpoint_every

@@ -30,7 +30,7 @@ import numpy as np
 import optax
 
 from mjstamp import checkpoint as checkpoint_mod
-from mjstamp import parallel, seeding, svgd
+from mjstamp import parallel, results, seeding, svgd
 from mjstamp import plans as plans_mod
 from mjstamp.config import SolveConfig
 from mjstamp.errors import FidelityWarning, MjstampError
@@ -95,7 +95,7 @@ class Outcome:
 
 @dataclasses.dataclass
 class SolveResult:
-    """Everything a solve produced (see `summary` for the JSON view, `save` for files).
+    """Everything a solve produced (the results directory's format: `mjstamp.results`).
 
     Attributes:
       problem: the problem as solved (on its calibrated gradient model).
@@ -161,173 +161,31 @@ class SolveResult:
         return self.returned & self.verified.ok
 
     def summary(self, coverage: dict | None = None) -> dict:
-        """JSON-ready summary (also the body of plans.json)."""
-        ok = self.verified_mask()
-        found = sorted({p for p, good in zip(self.verified.plan, ok, strict=True) if good})
-        codes = sorted({c for c, good in zip(self.verified.code, ok, strict=True) if good})
-        out = {
-            "task": self.problem.name,
-            "particles": int(self.theta.shape[0]),
-            "devices": self.devices,
-            "seed": int(self.config["seed"]),
-            "wall_time_s": self.timings["total_s"],
-            "timings": self.timings,
-            "compiles": self.compiles,
-            "returned_plans": int(self.returned.sum()),
-            "verified_plans": int(ok.sum()),
-            "repaired_plans": int((self.repaired & ok).sum()),
-            "verified_fraction": self.verified_fraction,
-            "verified_particle_share": float(ok.sum() / len(ok)),
-            "distinct_verified_task_plans": len(found),
-            "distinct_verified_codes": len(codes),
-            "verified_codes": codes,
-            "fidelity": self.fidelity,
-            "screen": self.screen,
-            "rescue": self.rescue,
-            "loss": self.loss,
-            "kept_from_earlier": {
-                name: int(((self.source == name) & ok).sum()) for name in ("svgd", "initial")
-            },
-            "task_plans": [
-                {k: r[k] for k in ("task_plan", "code", "plans", "verified", "repaired",
-                                   "verified_share", "best_cost", "robustness_best",
-                                   "robustness_median") if k in r}
-                for r in self.rows
-            ],
-            "robustness": self._robustness_summary(),
-            "cost_scale": self.problem.cost_scale,
-            "robust_planning": None if self.problem.robust is None
-            else self.problem.robust.describe(),
-            "plans": self._plans(),
-            "iteration_seconds": _iteration_seconds(self.diagnostics),
-            "stamp": {
-                "svgd_iters": self.stamp.svgd_iters,
-                "sgd_iters": self.stamp.sgd_iters,
-                "svgd_converged": self.stamp.svgd_converged,
-                "sgd_converged": self.stamp.sgd_converged,
-                "nonfinite_particles": _nonfinite_report(self.stamp),
-            },
-            "config": self.config,
-            "declaration": self.problem.describe(),
-        }
-        if coverage is not None:
-            out["coverage"] = coverage["coverage"]
-            out["coverage_detail"] = coverage
-        return out
-
-    def _robustness_summary(self) -> dict | None:
-        rob = self.robustness
-        if rob is None:
-            return None
-        scored = rob["success"][np.isfinite(rob["success"])]
-        return {k: rob[k] for k in ("samples", "seed", "seconds", "rollouts", "uncertain",
-                                    "declared")} | {
-            "scored_plans": len(scored),
-            "median": float(np.median(scored)) if len(scored) else None,
-        }
-
-    def _plan_robustness(self, i: int) -> dict:
-        """A verified plan's scores ({} when not scored)."""
-        rob = self.robustness
-        if rob is None or not np.isfinite(rob["success"][i]):
-            return {}
-        spread = rob["cost_std"][i]
-        return {"robustness": float(rob["success"][i]),
-                "robust_same_plan": float(rob["same_plan"][i]),
-                "robust_cost_median": float(rob["cost_median"][i]),
-                "robust_cost_std": float(spread) if np.isfinite(spread) else None}
-
-    def _plans(self) -> list[dict]:
-        params = self.problem.unpack(self.theta)
-        return [
-            {
-                "particle": int(i),
-                "task_plan": self.verified.plan[i],
-                "predicted_task_plan": self.predicted.plan[i],
-                "verified": bool(self.verified.ok[i]),
-                "repaired": bool(self.repaired[i]),
-                "source": str(self.source[i]),
-                "cost": float(self.cost[i]),
-                "motion_plan": {name: np.asarray(val[i]).tolist() for name, val in params.items()},
-                **self._plan_robustness(i),
-            }
-            for i in np.flatnonzero(self.returned)
-        ]
+        """JSON-ready summary, the body of plans.json (`results.summarize`)."""
+        return results.summarize(self, coverage)
 
     def arrays(self) -> dict[str, dict[str, np.ndarray]]:
-        """Arrays for the result files: particles.npz and trajectories.npz."""
-        d = self.diagnostics
-        particles = {
-            "theta": self.theta, "svgd_theta": self.svgd_theta,
-            "initial_theta": self.initial_theta, "cost": self.cost,
-            "returned": self.returned, "verified": self.verified.ok,
-            "repaired": self.repaired, "source": np.asarray(self.source, dtype=str),
-            # Task plan of every particle's C replay (returned or not), for figures.
-            "task_plan": np.asarray(self.verified.plan, dtype=str),
-            "predicted_task_plan": np.asarray(self.predicted.plan, dtype=str),
-            "logdensity_mean": d.logdensity_mean, "logdensity_max": d.logdensity_max,
-            "phase": d.phase, "displacement": d.displacement, "step_seconds": d.step_seconds,
-        }
-        if self.robustness is not None:
-            particles["robustness"] = self.robustness["success"]
-        idx = np.flatnonzero(self.returned)
-        qpos0, qvel0, _ = self.problem.inputs(self.theta[idx], xp=np)
-        trajectories = {
-            "particle": idx,
-            "qpos0": np.asarray(qpos0, np.float64),
-            "qvel0": np.asarray(qvel0, np.float64),
-            "qpos": self.replay.qpos[idx],
-            "qvel": self.replay.qvel[idx],
-            "ctrl": self.replay.ctrl[idx],
-            "xpos": self.replay.xpos[idx],
-            "timestep": np.float64(self.problem.scene.m.opt.timestep),
-        }
-        return {"particles": particles, "trajectories": trajectories}
+        """Arrays of particles.npz and trajectories.npz (`results.to_arrays`)."""
+        return results.to_arrays(self)
 
     def save(self, out: str | Path, *, figures: bool = True, coverage: dict | None = None,
              progress: bool | None = None) -> list[Path]:
         """Writes the results directory: plans.json, .npz files, scene.mjb[, figures].
 
-        Every file is written atomically, plans.json last (a directory with one
-        is complete). `mjstamp.load(out)` reads it back; `mjstamp view` plays it.
-
-        N.B. in a solve over several processes (`mjstamp.parallel.join_processes`)
-        every process holds the same result and only process 0 writes.
+        The files of the format are `results.write`'s (atomic, plans.json last;
+        only process 0 of several writes); the figures are drawn from this
+        result. `mjstamp.load(out)` reads it back; `mjstamp view` plays it.
 
         Returns:
           The paths written (none on other processes than 0).
         """
         from mjstamp import figures as figures_mod  # noqa: PLC0415 - matplotlib only here
 
-        if not parallel.is_lead():
-            return []
-        out = plans_mod.check_writable(out)
-        written = plans_mod.save(out, self.summary(coverage), self.arrays(),
-                                 model=self.problem.scene.m)
-        # N.B. plans.json is written: the solve is complete, its checkpoint spent.
-        (out / checkpoint_mod.FILENAME).unlink(missing_ok=True)
-        if figures:
-            written += figures_mod.save_figures(self, out, progress=progress,
+        written = results.write(self, out, coverage=coverage)
+        if figures and written:
+            written += figures_mod.save_figures(self, Path(out), progress=progress,
                                                 jit=problem_jit(self.problem))
         return written
-
-
-def _iteration_seconds(d: svgd.StampDiagnostics) -> dict[str, float | None]:
-    """Per phase: the first iteration (compile or cache load included) and the median."""
-    out: dict[str, float | None] = {}
-    for phase, name in ((svgd.PHASE_SVGD, "svgd"), (svgd.PHASE_SGD, "sgd")):
-        t = d.step_seconds[d.phase == phase]
-        out[f"{name}_first"] = float(t[0]) if len(t) else None
-        out[f"{name}_median"] = float(np.median(t[1:])) if len(t) > 1 else None
-    return out
-
-
-def _nonfinite_report(stamp: svgd.StampResult) -> dict[str, int]:
-    """How many particles went non-finite: per iteration at most, iterations hit, re-draws."""
-    counts = stamp.diagnostics.nonfinite_particles
-    return {"max_per_iteration": int(counts.max(initial=0)),
-            "iterations_with_any": int((counts > 0).sum()),
-            "redrawn": int(stamp.nonfinite_redrawn.sum())}
 
 
 def problem_jit(problem: Problem):

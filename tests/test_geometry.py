@@ -15,7 +15,7 @@ from matplotlib import colors as mcolors
 from matplotlib.quiver import Quiver
 from meshcat.commands import SetAnimation, SetObject
 
-from mjstamp import figures, geometry, plans, viz
+from mjstamp import figures, geometry, results, viz
 from mjstamp.viz.playback import ARROW_CAP, ARROW_FRACTION
 
 XML = """
@@ -134,7 +134,7 @@ def _playback(replay, tmp_path):
     summary = {"task": "pushbox", "task_plans": [], "plans": [entry], "config": {},
                "declaration": {"name": "pushbox", "display": {"trace": ["pusher"],
                                                               "force": [["pusher", "block"]]}}}
-    plans.save(tmp_path, summary, {"trajectories": traj, "particles": {}}, model=m)
+    results.save(tmp_path, summary, {"trajectories": traj, "particles": {}}, model=m)
     res = viz.load_results(tmp_path)
     return viz.build_playback(res, [entry], max_fps=1.0 / m.opt.timestep)  # stride 1
 

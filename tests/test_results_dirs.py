@@ -1,6 +1,6 @@
 """Damaged results directories: one `MjstampError` line, never a traceback.
 
-Each case damages a copy of a valid results directory (written by `plans.save`
+Each case damages a copy of a valid results directory (written by `results.save`
 from a synthetic solve of the tiny conftest task: every key `SolveResult.summary()`
 and `arrays()` write, states replayed in MuJoCo C, no MJX and no solve) and checks
 `mjstamp.load(DIR)` and `mjstamp view DIR --html OUT` (exit 2, exactly one
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import mjstamp
-from mjstamp import plans
+from mjstamp import results
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 
@@ -119,7 +119,7 @@ def valid(tmp_path_factory, tiny_xml):
     """A complete results directory of the tiny task (4 returned plans of 6 particles)."""
     out = tmp_path_factory.mktemp("tiny_results")
     m = mujoco.MjModel.from_xml_string(tiny_xml())
-    plans.save(out, _summary(m), _arrays(m), model=m)
+    results.save(out, _summary(m), _arrays(m), model=m)
     return out
 
 
@@ -181,7 +181,7 @@ def _rerun(path: Path) -> str:
 def test_valid_directory_loads_and_plays(valid, tmp_path, capfd):
     res = mjstamp.load(valid, task="tiny")
     assert res.task == "tiny" and res.trajectories["qpos"].shape == (len(PLANS), T, 2)
-    assert "task tiny: 6 particles" in plans.format_table(res.summary)
+    assert "task tiny: 6 particles" in results.format_table(res.summary)
     page = tmp_path / "page.html"
     capfd.readouterr()
     assert main(["view", str(valid), "--html", str(page)]) == 0
@@ -285,7 +285,7 @@ def test_plans_json_of_another_schema_version(copy, capfd):
     _write_json(copy, _json(copy) | {"schema_version": 2})
     assert _one_line(copy, capfd) == (
         f"{str(copy / 'plans.json')!r} has schema_version 2; this mjstamp reads "
-        f"{plans.SCHEMA_VERSION} ({_rerun(copy)})")
+        f"{results.SCHEMA_VERSION} ({_rerun(copy)})")
 
 
 def test_plans_of_another_task(valid, capfd):
@@ -465,7 +465,7 @@ def test_particles_fewer_than_the_plans_referenced(copy, capfd):
     del data["particles"]
     _write_json(copy, data)
     _rewrite_npz(copy, "particles", lambda arrays: arrays.update(
-        {k: arrays[k][:4] for k in plans._PER_PARTICLE}))
+        {k: arrays[k][:4] for k in results.PER_PARTICLE}))
     assert _one_line(copy, capfd).startswith(
         f"{str(copy / 'particles.npz')!r} has theta of 4 rows, but plans.json has a plan of "
         "particle 4")
@@ -495,7 +495,7 @@ def test_scene_mjb_of_another_scene(copy, capfd, tiny_xml):
     xml = tiny_xml().replace('<body name="puck">', '<body name="puck">\n'
                              '      <joint name="spin" type="hinge" axis="0 0 1"/>')
     m = mujoco.MjModel.from_xml_string(xml)
-    plans.save(copy, {k: v for k, v in _json(copy).items() if k != "schema_version"}, {},
+    results.save(copy, {k: v for k, v in _json(copy).items() if k != "schema_version"}, {},
                model=m)
     assert _one_line(copy, capfd) == (
         f"{str(copy / 'trajectories.npz')!r} has qpos of shape (4, 40, 2) but scene.mjb has "

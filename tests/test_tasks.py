@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mjstamp import plans, seeding, tasks
+from mjstamp import plans, results, seeding, tasks
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
@@ -164,9 +164,9 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
     written = result.save(tmp_path, figures=False)
     assert {p.name for p in written} == {
         "plans.json", "particles.npz", "trajectories.npz", "scene.mjb"}
-    assert plans.load_model(tmp_path).ngeom == result.task.scene.m.ngeom
-    loaded, arrays = plans.load(tmp_path)
-    assert loaded == json.loads(json.dumps({"schema_version": plans.SCHEMA_VERSION, **summary}))
+    assert results.load_model(tmp_path).ngeom == result.task.scene.m.ngeom
+    loaded, arrays = results.load(tmp_path)
+    assert loaded == json.loads(json.dumps({"schema_version": results.SCHEMA_VERSION, **summary}))
     for name, data in result.arrays().items():
         for key, value in data.items():
             np.testing.assert_array_equal(arrays[name][key], value, err_msg=f"{name}.{key}")
@@ -175,10 +175,10 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
 
 def test_results_directory_errors(tmp_path):
     with pytest.raises(MjstampError, match="no plans.json"):
-        plans.load(tmp_path)
+        results.load(tmp_path)
     (tmp_path / "plans.json").write_text(json.dumps({"schema_version": 0}))
     with pytest.raises(MjstampError, match="schema_version 0; this mjstamp reads 3"):
-        plans.load(tmp_path)
+        results.load(tmp_path)
 
 
 def test_solve_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
@@ -210,7 +210,7 @@ def test_format_table_text_and_markdown():
              "verified_share": 0.0},
         ],
     }
-    text = plans.format_table(summary).splitlines()
+    text = results.format_table(summary).splitlines()
     assert text[0] == ("task t: 8 particles, 1.2 s; 3 plans returned, 67% verified in "
                        "MuJoCo C")
     assert text[1].split() == ["task", "plan", "plans", "found", "verified", "repaired", "best",
@@ -219,13 +219,13 @@ def test_format_table_text_and_markdown():
     # Results files written before repair existed have no "repaired" counts.
     assert text[4].split() == ["0", "(failed)", "1", "0", "0", "-", "0%"]
     assert text[5] == "distinct verified task plans: 1 (symbol codes: 1)"
-    md = plans.format_table(summary, markdown=True)
+    md = results.format_table(summary, markdown=True)
     assert "| `1-goal` | 2 | 2 | 1 | 0.5 | 100% |" in md.splitlines()
     summary["declaration"]["symbols"] = []
-    assert plans.format_table(summary).endswith("distinct verified task plans: 1")
+    assert results.format_table(summary).endswith("distinct verified task plans: 1")
     summary.update(repaired_plans=1, fidelity={
         "iterations": 2, "mjx_divergence_p95_m": 1e-9, "tolerance_m": 2e-3, "faithful": True})
-    assert plans.format_table(summary).splitlines()[-2:] == [
+    assert results.format_table(summary).splitlines()[-2:] == [
         "distinct verified task plans: 1; 1 plans verified only after repair in MuJoCo C",
         "gradient model: unrolled (2 solver iterations); MJX vs MuJoCo C divergence p95 "
         "1e-09 m (tolerance 0.002 m)",
@@ -233,7 +233,7 @@ def test_format_table_text_and_markdown():
     # A solve's summary also says how the particles fared and what SVGD did for the cost.
     summary.update(verified_particle_share=0.25, rescue={"redraws": 3}, loss={
         "mean": {"initial": 10.0, "svgd": 6.0, "final": 2.0}, "svgd_share": 0.5})
-    assert plans.format_table(summary).splitlines()[-1] == (
+    assert results.format_table(summary).splitlines()[-1] == (
         "particles: 25% end as verified plans; mean cost 10 at the start, 6 after SVGD, 2 at "
         "the end (SVGD: 50% of the decrease); 3 stalled particles re-drawn")
 

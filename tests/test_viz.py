@@ -21,7 +21,7 @@ import pytest
 import umsgpack
 from meshcat.commands import SetAnimation, SetObject, SetProperty, SetTransform
 
-from mjstamp import plans, viz
+from mjstamp import results, viz
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.viz import scene as viz_scene
@@ -131,7 +131,7 @@ def toy_results(toy_model, tmp_path_factory):
     n = max(particles) + 1
     particle_arrays = {"verified": np.zeros(n, bool), "returned": np.zeros(n, bool),
                        "task_plan": np.full(n, "", dtype="<U20")}
-    plans.save(out, summary, {"trajectories": traj, "particles": particle_arrays}, model=m)
+    results.save(out, summary, {"trajectories": traj, "particles": particle_arrays}, model=m)
     return out
 
 
@@ -333,7 +333,7 @@ def test_load_results_rejects_bad_directories(toy_results, tmp_path):
     shutil.copytree(toy_results, other)
     m = mujoco.MjModel.from_xml_string(RESTING_XML)
     del data["schema_version"]
-    plans.save(other, data, {}, model=m)  # the scene of another task
+    results.save(other, data, {}, model=m)  # the scene of another task
     with pytest.raises(MjstampError, match=r"has qpos of shape \(4, 60, 2\) but scene.mjb "
                                            r"has nq=14"):
         viz.load_results(other)

@@ -13,14 +13,15 @@ plan's robustness score.
 What it may import: mujoco, numpy, meshcat and its transport (zmq, umsgpack),
 the standard library, and of mjstamp only `geometry` (poses, colours and
 contact forces, shared with the PNG figures so the two cannot disagree),
-`plans` (the results files and their schema), `fileio` and `errors`; not the
-solver, the tasks nor `figures`.
+`results` (the results files and their schema), `plans` (perturbed replays),
+`fileio` and `errors`; not the solver, the tasks nor `figures`.
 
 References:
   STAMP Fig. 6 (force arrows) and Fig. 7 (plan paths).
 """
 
 from mjstamp.geometry import contact_force
+from mjstamp.results import Results, load_results
 from mjstamp.viz.playback import (
     Playback,
     Segment,
@@ -31,7 +32,7 @@ from mjstamp.viz.playback import (
     start_server,
     write_html,
 )
-from mjstamp.viz.results import Results, load_results, select_plans
+from mjstamp.viz.results import select_plans
 from mjstamp.viz.scene import SceneObject, scene_commands, scene_objects
 
 __all__ = [

@@ -46,8 +46,9 @@ from mjstamp import geometry
 from mjstamp import plans as plans_io
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.fileio import write_atomic
+from mjstamp.results import Results, load_results
 from mjstamp.viz import scene as scene_mod
-from mjstamp.viz.results import Results, load_results, select_plans
+from mjstamp.viz.results import select_plans
 
 FORCE_COLOR = 0xFF8C00  # orange: stands out on the grey and green tables of the tasks
 # A typical force (90th percentile of the nonzero ones shown) draws an arrow this fraction of

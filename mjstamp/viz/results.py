@@ -1,90 +1,11 @@
-"""A results directory, opened for playback, and the choice of which plans to play."""
+"""The choice of which plans of a results directory (`mjstamp.results.Results`) to play."""
 
 from __future__ import annotations
 
-import dataclasses
-import os
-from pathlib import Path
-
-import mujoco
 import numpy as np
 
-from mjstamp import plans as plans_io
 from mjstamp.errors import MjstampError, valid_list
-from mjstamp.fileio import probe
-
-
-@dataclasses.dataclass(frozen=True)
-class Results:
-    """What `mjstamp solve --out DIR` wrote, as playback needs it.
-
-    Attributes:
-      path: the directory.
-      summary: contents of plans.json.
-      model: the compiled scene (scene.mjb).
-      trajectories: arrays of trajectories.npz: particle (r,), qpos0 (r, nq),
-        qvel0 (r, nv), qpos (r, T, nq), qvel (r, T, nv), ctrl (r, T, nu), ...
-    """
-
-    path: Path
-    summary: dict
-    model: mujoco.MjModel
-    trajectories: dict[str, np.ndarray]
-
-    @property
-    def task(self) -> str:
-        """Name of the task that wrote the directory."""
-        return str(self.summary.get("task", "?"))
-
-    @property
-    def display(self) -> dict:
-        """Drawing hints of the task: {"trace": [body], "force": [[geom_a, geom_b]]}."""
-        hints = self.summary.get("declaration", {}).get("display") or {}
-        return {"trace": list(hints.get("trace", [])), "force": list(hints.get("force", []))}
-
-    @property
-    def timestep(self) -> float:
-        """Seconds between two saved states."""
-        if "timestep" in self.trajectories:
-            return float(self.trajectories["timestep"])
-        return float(self.model.opt.timestep)
-
-    def row(self, particle: int) -> int:
-        """Index in trajectories.npz of a returned particle's plan."""
-        rows = np.flatnonzero(self.trajectories["particle"] == particle)
-        if len(rows) == 0:
-            raise MjstampError(
-                f"{str(self.path)!r}: particle {particle} has no saved trajectory; valid: "
-                + valid_list(self.trajectories["particle"].tolist())
-            )
-        return int(rows[0])
-
-
-def load_results(path: str | os.PathLike, *, task: str | None = None) -> Results:
-    """Opens a results directory for playback, checking it is complete and current.
-
-    Args:
-      path: directory written by `mjstamp solve TASK --out DIR`.
-      task: if given, the task the directory must belong to.
-
-    Raises:
-      MjstampError: the directory does not exist or belongs to another task;
-        any damage to its files (`plans.load`, `plans.load_model`: one line
-        naming the file, what is wrong and what to do).
-    """
-    path = Path(path)
-    if not probe(path.exists, path, "results directory "):
-        raise MjstampError(f"results directory {str(path)!r} does not exist")
-    if not path.is_dir():
-        raise MjstampError(f"{str(path)!r} is not a directory (expected a results directory)")
-    summary, arrays = plans_io.load(path)
-    if task is not None and summary["task"] != task:
-        raise MjstampError(
-            f"{str(path)!r} holds plans of task {summary['task']!r}, not {task!r}"
-        )
-    traj = arrays["trajectories"]
-    m = plans_io.load_model(path, trajectories=traj, task=summary["task"])
-    return Results(path=path, summary=summary, model=m, trajectories=traj)
+from mjstamp.results import Results
 
 
 def select_plans(
