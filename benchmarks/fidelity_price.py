@@ -163,9 +163,9 @@ def main() -> None:
                         help="price of C's ported colliders against MJX's own, both on the "
                              "calibrated model, instead of the calibration's price")
     args = parser.parse_args()
-    from mjstamp.cli import configure_jax
+    import mjstamp
 
-    configure_jax()
+    mjstamp.configure()
     rows = []
     for name in args.tasks.split(","):
         print(f"[price] {name}", file=sys.stderr, flush=True)

@@ -834,9 +834,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.scenes < 0 or args.check < 0 or args.solve < 0:
         parser.error("--scenes, --check and --solve must be >= 0")
 
-    from mjstamp.cli import configure_jax
+    import mjstamp
 
-    configure_jax()  # the CLI's settings, so in-process Scenes match what `check` builds
+    mjstamp.configure()  # the CLI's settings, so in-process Scenes match what `check` builds
 
     def say(msg: str) -> None:
         print(f"[fuzz] {msg}", file=sys.stderr, flush=True)

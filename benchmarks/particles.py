@@ -82,19 +82,19 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seeds={args.seeds} must be >= 1")
 
     import mjstamp
-    from mjstamp.cli import _host_devices
+    from mjstamp.parallel import host_device_count
 
-    devices = args.devices or _host_devices("auto")  # one per core, at most 8
+    devices = args.devices or host_device_count("auto")  # one per core, at most 8
     mjstamp.configure(devices=devices, strict_devices=False)
-    from mjstamp import cli, modes, tasks
+    from mjstamp import modes, tasks
 
     out: dict = {"benchmark": "particles", "devices": devices, "seeds": args.seeds,
                  "set": args.set, "compare": args.compare}
     for name in args.tasks:
-        base = {**TASKS[name], **cli._parse_settings(name, args.set)}
+        base = {**TASKS[name], **tasks.parse_overrides(name, args.set)}
         variants = {"default": base}
         if args.compare:
-            variants["compare"] = {**base, **cli._parse_settings(name, args.compare)}
+            variants["compare"] = {**base, **tasks.parse_overrides(name, args.compare)}
         truth = None
         if name == "billiards":
             task, _ = tasks.load(name, **base)

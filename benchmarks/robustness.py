@@ -199,11 +199,11 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--uncertain {item!r}: SPREAD must be a number")
 
     import mjstamp
-    from mjstamp.cli import _host_devices
+    from mjstamp.parallel import host_device_count
 
-    devices = args.devices or _host_devices("auto")  # one per core, at most 8
+    devices = args.devices or host_device_count("auto")  # one per core, at most 8
     mjstamp.configure(devices=devices, strict_devices=False)
-    from mjstamp import cli
+    from mjstamp import tasks
 
     out: dict = {"benchmark": "robustness", "devices": devices, "seeds": args.seeds,
                  "first_seed": args.first_seed, "nominal_only": args.nominal_only,
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                  "uncertain": args.uncertain}
     if args.achievable is not None:
         for name in args.tasks:
-            base = {**TASKS[name], **cli._parse_settings(name, args.set)}
+            base = {**TASKS[name], **tasks.parse_overrides(name, args.set)}
             out[name] = {"achievable": [_achievable(name, base, args.achievable, seed, declare)
                                         for seed in range(args.first_seed,
                                                           args.first_seed + args.seeds)]}
@@ -219,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out))
         return 0
     for name in args.tasks:
-        base = {**TASKS[name], **cli._parse_settings(name, args.set)}
+        base = {**TASKS[name], **tasks.parse_overrides(name, args.set)}
         rows: dict[str, list[dict]] = {"nominal": [], "robust": []}
         solves = [("nominal", base)]
         if not args.nominal_only:

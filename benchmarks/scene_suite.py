@@ -316,13 +316,15 @@ def main() -> None:
                         "every core in any case")
     args = parser.parse_args()
 
-    from mjstamp.cli import _devices, _host_devices, configure_jax
+    import mjstamp
+    from mjstamp.cli.arguments import parse_devices
+    from mjstamp.parallel import host_device_count
 
     try:
-        devices = _host_devices(_devices(args.devices))
+        devices = host_device_count(parse_devices(args.devices))
     except Exception as e:  # noqa: BLE001 - argparse's and mjstamp's one-line errors alike
         raise SystemExit(f"--devices {args.devices}: {e}") from None
-    configure_jax(devices=devices, strict_devices=False)
+    mjstamp.configure(devices=devices, strict_devices=False)
     from suite.ground_truth import SHOTS
     from suite.tasks import SUITE
 

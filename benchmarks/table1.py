@@ -42,17 +42,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     import mjstamp
-    from mjstamp.cli import _host_devices
+    from mjstamp.parallel import host_device_count
 
-    devices = args.devices or _host_devices("auto")  # one per core, at most 8
+    devices = args.devices or host_device_count("auto")  # one per core, at most 8
     mjstamp.configure(devices=devices, strict_devices=False)
-    from mjstamp import cli, tasks
+    from mjstamp import tasks
     from mjstamp.baselines.compare import compare, format_table, parse_methods
 
     methods = parse_methods(args.methods)
     out = {}
     for name in args.tasks:
-        overrides = {**TASKS[name], **cli._parse_settings(name, args.set), "devices": None}
+        overrides = {**TASKS[name], **tasks.parse_overrides(name, args.set), "devices": None}
         rows = compare(lambda n=name, o=overrides: tasks.load(n, **o), methods=methods,
                        seeds=args.seeds, cap_s=args.cap,
                        say=lambda msg, n=name: print(f"[table1 {n}] {msg}", file=sys.stderr,

@@ -92,11 +92,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seeds {args.seeds} must be >= 1")
 
     import mjstamp
-    from mjstamp.cli import _host_devices
+    from mjstamp.parallel import host_device_count
 
-    mjstamp.configure(devices=args.devices or _host_devices("auto"),  # one per core, at most 8
+    mjstamp.configure(devices=args.devices or host_device_count("auto"),  # one per core, at most 8
                       strict_devices=False)
-    from mjstamp import cli
+    from mjstamp import tasks
 
     def say(msg):
         print(f"[table{args.table}] {msg}", file=sys.stderr, flush=True)
@@ -119,11 +119,11 @@ def main(argv: list[str] | None = None) -> int:
         for name in args.tasks:
             for n in args.particles:
                 extra = {"max_pushes": 1} if name == "pushing" else {}
-                overrides = {**extra, **cli._parse_settings(name, args.set), "particles": n}
+                overrides = {**extra, **tasks.parse_overrides(name, args.set), "particles": n}
                 add(_row(name, overrides, args.seeds, say))
     else:
         for k in args.max_pushes:
-            overrides = {**cli._parse_settings("pushing", args.set), "max_pushes": k}
+            overrides = {**tasks.parse_overrides("pushing", args.set), "max_pushes": k}
             add(_row("pushing", overrides, args.seeds, say))
     if args.json:
         print(json.dumps(result))

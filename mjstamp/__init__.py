@@ -31,7 +31,7 @@ DEFAULT_CACHE = Path.home() / ".cache" / "mjstamp" / "jax"
 
 
 def configure(*, precision: str = "float64", compilation_cache: bool = True,
-              devices: int | None = None, strict_devices: bool = True,
+              devices: int | str | None = None, strict_devices: bool = True,
               coordinator: str | None = None, num_processes: int = 1, process_id: int = 0,
               coordinator_timeout_s: float = 60.0) -> None:
     """Process-wide JAX settings: precision and the persistent compilation cache.
@@ -48,7 +48,10 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
       compilation_cache: turn on JAX's persistent compilation cache.
       devices: on a CPU, ask XLA for this many host devices (one per core is
         what `solve`'s `devices` setting shards particles over); must come
-        before JAX starts (the first array). None leaves XLA's default (1).
+        before JAX starts (the first array). "auto": one per core, at most 8,
+        shared by the processes of a loopback coordinator, as `mjstamp solve`
+        does (`mjstamp.parallel.host_device_count`), and never strict. None
+        leaves XLA's default (1).
       strict_devices: when JAX already runs with fewer devices, raise (True)
         or keep them (False).
       coordinator: "host:port" of process 0, to run one solve over several
@@ -66,9 +69,13 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
     if precision not in ("float64", "float32"):
         raise MjstampError(f"precision={precision!r} is not valid; valid: float64, float32")
     if devices is not None:
-        from mjstamp.parallel import request_host_devices  # noqa: PLC0415
+        from mjstamp import parallel  # noqa: PLC0415
 
-        request_host_devices(devices, strict=strict_devices)
+        if devices == "auto":
+            devices = parallel.host_device_count(devices, coordinator=coordinator,
+                                                 num_processes=num_processes)
+            strict_devices = False  # N.B. "every device there is": whatever JAX already has
+        parallel.request_host_devices(devices, strict=strict_devices)
     if coordinator is not None:
         from mjstamp.parallel import join_processes  # noqa: PLC0415
 

@@ -277,15 +277,22 @@ def random_search(task, wall_s: float, *, seed: int = 0, chunk: int = 256) -> di
 
 
 def coverage(found_plans, modes: dict, *, min_share: float = MIN_SHARE) -> dict:
-    """Found task plans over feasible ones occupying at least `min_share` of the box."""
+    """Found task plans over feasible ones occupying at least `min_share` of the box.
+
+    Also how many task plans the sweep holds in all (`swept`, rarer ones
+    included) and how many of those were found (`swept_found`).
+    """
     feasible = [m["task_plan"] for m in modes["modes"] if m["share"] >= min_share]
     found = sorted(set(found_plans) & set(feasible))
+    swept = {m["task_plan"] for m in modes["modes"]}
     return {
         "coverage": len(found) / len(feasible) if feasible else 1.0,
         "min_share": min_share,
         "feasible": feasible,
         "found": found,
         "missed": sorted(set(feasible) - set(found)),
+        "swept": len(swept),
+        "swept_found": len(swept & set(found_plans)),
         "grid": modes.get("grid"),
         "shots": modes.get("shots"),
         "method": modes.get("method", "grid"),

@@ -37,11 +37,62 @@ from jax.sharding import PartitionSpec as P
 
 from mjstamp.errors import MjstampError
 
-__all__ = ["AXIS", "barrier", "check_devices", "is_lead", "join_processes", "local_device",
-           "particle_mesh", "replicate_outputs", "request_host_devices", "shard_particles"]
+__all__ = ["AXIS", "barrier", "check_devices", "host_device_count", "is_lead", "join_processes",
+           "local_device", "particle_mesh", "replicate_outputs", "request_host_devices",
+           "shard_count", "shard_particles"]
 
 AXIS = "particles"
 _FLAG = "--xla_force_host_platform_device_count"
+
+
+_LOOPBACK = ("127.0.0.1", "localhost", "[::1]", "::1")
+
+
+def host_device_count(requested: int | str | None, *, coordinator: str | None = None,
+                      num_processes: int = 1) -> int | None:
+    """How many CPU host devices to ask XLA for: N, or for "auto" one per core (at most 8).
+
+    The count before JAX starts (`request_host_devices`); `shard_count` is the
+    one a solve shards over once it has.
+
+    Args:
+      requested: N >= 1, "auto", or None (None: XLA's default, nothing asked).
+      coordinator: "host:port" of process 0 in a run over several processes.
+        N.B. processes on one machine (a loopback coordinator) share its cores:
+        "auto" gives each its share.
+      num_processes: processes in that run.
+
+    Raises:
+      MjstampError: N is more than this machine's cores (XLA makes as many
+        host devices as asked; more than cores only slows).
+    """
+    if requested is None:
+        return None
+    cores = os.cpu_count() or 1
+    if requested == "auto":
+        share = 1
+        if coordinator is not None and str(coordinator).rpartition(":")[0] in _LOOPBACK:
+            share = num_processes if isinstance(num_processes, int) else 1
+        return max(1, min(cores, 8) // max(1, share))
+    if requested > cores:
+        raise MjstampError(f"--devices {requested}: this machine has {cores} CPU cores "
+                           f"(host devices: at most {cores})")
+    return requested
+
+
+def shard_count(requested: int | str | None) -> int:
+    """How many devices a solve shards its particles over: N, or every device JAX sees.
+
+    Args:
+      requested: N >= 1, or None / "auto": every device (over several
+        processes, all of theirs).
+
+    Raises:
+      MjstampError: N is not an integer >= 1, or more than JAX sees (`check_devices`).
+    """
+    k = jax.device_count() if requested is None or requested == "auto" else requested
+    check_devices(k)
+    return k
 
 
 def request_host_devices(n: int, *, strict: bool = True) -> None:

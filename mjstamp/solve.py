@@ -450,8 +450,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         progress = False  # N.B. one of several processes: process 0 speaks for all
     problem = as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
-    devices = cfg.devices or jax.device_count()
-    parallel.check_devices(devices)
+    devices = parallel.shard_count(cfg.devices)
     if jax.process_count() > 1 and devices != jax.device_count():
         raise MjstampError(f"devices={devices}: a solve over {jax.process_count()} processes "
                            f"shards over all their {jax.device_count()} devices (devices=None)")

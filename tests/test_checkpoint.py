@@ -188,9 +188,9 @@ def test_cli_checkpoint_flags_bad_input_is_one_line(tmp_path, capsys, argv, matc
 
 
 def test_resume_hint_is_the_same_command_with_resume():
-    from mjstamp.cli import _resume_hint  # noqa: PLC0415
+    from mjstamp.cli.solve import resume_hint  # noqa: PLC0415
 
-    hint = _resume_hint(["solve", "billiards", "--seed", "3", "--out", "R", "--set", "a=1"], "R")
+    hint = resume_hint(["solve", "billiards", "--seed", "3", "--out", "R", "--set", "a=1"], "R")
     assert hint == "mjstamp solve billiards --seed 3 --set a=1 --resume R"
 
 

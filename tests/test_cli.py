@@ -48,3 +48,22 @@ def test_check_text_report_of_a_healthy_scene(tmp_path, capsys, tiny_xml):
     out = capsys.readouterr().out
     assert "calibrated       scene 'tiny':" in out and out.rstrip().endswith("healthy")
     assert "physics          MJX vs MuJoCo C (scene's own solver): divergence median" in out
+
+
+def test_coverage_line_says_what_it_measured(capsys):
+    """Feasible task plans over the share threshold, and found of all the sweep holds."""
+    from mjstamp import modes
+    from mjstamp.cli.solve import print_table
+
+    sweep = {"modes": [{"task_plan": "a", "share": 0.5}, {"task_plan": "b", "share": 0.2},
+                       {"task_plan": "c", "share": 1e-4}, {"task_plan": "d", "share": 2e-4}],
+             "grid": 10}
+    detail = modes.coverage(["a", "c"], sweep)
+    assert (detail["swept"], detail["swept_found"], detail["missed"]) == (4, 2, ["b"])
+    print_table({"task": "t", "plans": [], "task_plans": [], "particles": 2, "wall_time_s": 1.0,
+                 "returned_plans": 2, "verified_fraction": 1.0, "declaration": {"symbols": []},
+                 "distinct_verified_task_plans": 2, "coverage": detail["coverage"],
+                 "coverage_detail": detail})
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last == ("coverage: 50% of the 2 task plans occupying >= 0.1% of the box "
+                    "(missed: b); found 2 of all the sweep's 4")

@@ -5,7 +5,8 @@ import sys
 
 import pytest
 
-from mjstamp.cli import _parse_settings, main
+from mjstamp.cli import main
+from mjstamp.tasks import parse_overrides
 
 # The fuzz lives in benchmarks/: import it from the repository root.
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
@@ -25,14 +26,14 @@ def test_random_command_lines_never_crash():
 @pytest.mark.parametrize("text, want", [("False", False), ("false", False), ("0", False),
                                         ("no", False), ("True", True), ("on", True)])
 def test_set_bool_means_what_it_says(text, want):
-    assert _parse_settings("billiards", [f"keep_visited={text}"])["keep_visited"] is want
+    assert parse_overrides("billiards", [f"keep_visited={text}"])["keep_visited"] is want
 
 
 @pytest.mark.parametrize("text, want", [("2.5", 2.5), ("3", 3.0), ("auto", "auto")])
 def test_set_cost_scale_takes_a_number_or_auto(text, want):
     # N.B. billiards has a setting of its own named beta (its soft indicators'):
     # the solve setting is cost_scale, and reaches SolveConfig from any task.
-    assert _parse_settings("billiards", [f"cost_scale={text}"])["cost_scale"] == want
+    assert parse_overrides("billiards", [f"cost_scale={text}"])["cost_scale"] == want
 
 
 @pytest.mark.parametrize("argv, needle", [

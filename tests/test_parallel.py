@@ -61,3 +61,42 @@ def test_bad_devices_flag_is_one_line(argv, needle, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
+
+
+def test_host_device_count_auto_is_one_per_core_at_most_8_shared_on_one_machine(monkeypatch):
+    import os  # noqa: PLC0415
+
+    from mjstamp import parallel  # noqa: PLC0415
+    from mjstamp.errors import MjstampError  # noqa: PLC0415
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 16)
+    assert parallel.host_device_count(None) is None
+    assert parallel.host_device_count("auto") == 8
+    assert parallel.host_device_count(16) == 16
+    # N.B. processes of one machine (a loopback coordinator) share its cores; others do not.
+    assert parallel.host_device_count("auto", coordinator="127.0.0.1:4321", num_processes=2) == 4
+    assert parallel.host_device_count("auto", coordinator="10.0.0.2:4321", num_processes=2) == 8
+    with pytest.raises(MjstampError, match="--devices 17: this machine has 16 CPU cores"):
+        parallel.host_device_count(17)
+
+
+def test_shard_count_auto_is_every_device_and_n_is_checked():
+    import jax  # noqa: PLC0415
+
+    from mjstamp import parallel  # noqa: PLC0415
+    from mjstamp.errors import MjstampError  # noqa: PLC0415
+
+    assert parallel.shard_count("auto") == parallel.shard_count(None) == jax.device_count()
+    assert parallel.shard_count(1) == 1
+    with pytest.raises(MjstampError, match="devices=64 but JAX sees"):
+        parallel.shard_count(64)
+
+
+def test_configure_devices_auto_keeps_a_running_jax():
+    import jax  # noqa: PLC0415
+
+    import mjstamp  # noqa: PLC0415
+
+    before = jax.device_count()  # N.B. JAX runs now: "auto" keeps it, never strict
+    mjstamp.configure(devices="auto")
+    assert jax.device_count() == before

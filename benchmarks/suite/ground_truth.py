@@ -77,9 +77,9 @@ def main() -> None:
     parser.add_argument("--no-cache", action="store_true", help="recompute, ignore the cache")
     args = parser.parse_args()
 
-    from mjstamp.cli import configure_jax
+    import mjstamp
 
-    configure_jax()
+    mjstamp.configure()
     from suite.tasks import SUITE
 
     from mjstamp import modes

@@ -7,8 +7,9 @@ and its solve settings (`solve_config()`, a `mjstamp.config.SolveConfig`'s
 fields) are two configs, as mujoco_playground separates an environment's config
 from its training config. `load(name, **overrides)` builds the task; each
 override goes to whichever config has the key, and an unknown key is an error
-naming both. A registry entry may also contribute command-line options of
-`mjstamp solve` (pushing's `--max-pushes`) and commands (`mjstamp skills`).
+naming both; `parse_overrides` types `KEY=VALUE` texts (`--set`) for it. A
+registry entry may also contribute command-line options of `mjstamp solve`
+(pushing's `--max-pushes`) and commands (`mjstamp skills`).
 
 May import: scenes/, relax/, svgd/ (kernels), skills/ (pushing), config.
 """
@@ -172,6 +173,59 @@ def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
     return task, config
 
 
+def parse_overrides(task_name: str, pairs: Sequence[str]) -> dict:
+    """`KEY=VALUE` texts (the CLI's `--set`) as `load`'s overrides, each typed like its default.
+
+    A key is a setting of the task or a solve setting (`SolveConfig` field); a
+    value takes its default's type (true/false/1/0/yes/no/on/off for a bool;
+    "none" for a setting whose default is None; a number or a word such as
+    "auto" for `cost_scale`).
+
+    Raises:
+      MjstampError: an unknown task, a pair without "=", an unknown key
+        (listing the valid ones) or a value of the wrong type; one line each.
+    """
+    defaults = {f.name: (f.default, str(f.type)) for f in dataclasses.fields(SolveConfig)}
+    defaults.update({k: (v, type(v).__name__) for k, v in default_config(task_name).items()})
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise MjstampError(f"--set {pair!r}: expected KEY=VALUE")
+        if key not in defaults:
+            raise MjstampError(
+                f"--set {key!r}: task {task_name!r} has no such setting; valid: "
+                + ", ".join(sorted(defaults))
+            )
+        out[key] = _parse_value(key, value, *defaults[key])
+    return out
+
+
+def _parse_value(key: str, text: str, default, annotation: str):
+    """One --set value, typed like its default (or, for a None default, its annotation)."""
+    kind = type(default) if default is not None else (
+        float if "float" in annotation else int if "int" in annotation else str
+    )
+    if kind is bool:
+        lowered = text.strip().lower()
+        if lowered in ("true", "1", "yes", "on"):
+            return True
+        if lowered in ("false", "0", "no", "off"):
+            return False
+        raise MjstampError(f"--set {key}={text!r}: expected true or false")
+    if default is None and text.strip().lower() == "none":
+        return None
+    if isinstance(default, str) and "float" in annotation:  # a number, or a word ("auto")
+        try:
+            return float(text)
+        except ValueError:
+            return text  # N.B. SolveConfig names the valid words
+    try:
+        return kind(text)
+    except ValueError:
+        raise MjstampError(f"--set {key}={text!r}: expected {kind.__name__}") from None
+
+
 __all__ = [
     "Command",
     "Contact",
@@ -188,6 +242,7 @@ __all__ = [
     "entries",
     "load",
     "names",
+    "parse_overrides",
     "register",
     "solve_config",
     "summaries",
