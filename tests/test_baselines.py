@@ -182,7 +182,7 @@ def test_table1_runs_on_a_tiny_setting():
     import json
 
     proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.table1", "--tasks", "billiards", "--seeds", "1",
+        [sys.executable, "-m", "benchmarks.paper.table1", "--tasks", "billiards", "--seeds", "1",
          "--cap", "20", "--devices", "1", "--set", "particles=8", "--set", "svgd_max_iters=3",
          "--set", "sgd_max_iters=3", "--set", "screen=1", "--json"],
         capture_output=True, text=True, timeout=1500, cwd=ROOT)

@@ -39,7 +39,7 @@ r.save(out, figures=False)
 
 # plans.json without what varies between runs (timings): the kill-and-resume benchmark's.
 sys.path.insert(0, str(TESTS.parent))
-from benchmarks.kill_resume import stable_plans as _stable  # noqa: E402
+from tests.stress.kill_resume import stable_plans as _stable  # noqa: E402
 
 
 def _start(out: Path, *extra: str) -> subprocess.Popen:

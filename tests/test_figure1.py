@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-# The toy lives in benchmarks/ (not in the engine): import it from the repository root.
+# The toy lives in benchmarks/paper/ (not in the engine): import it from the repository root.
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from benchmarks.mixture import (  # noqa: E402 - after the path set-up above
+from benchmarks.paper.mixture import (  # noqa: E402 - after the path set-up above
     LabelledMixture,
     component_log_densities,
     figure1_mixture,
@@ -98,7 +98,7 @@ def test_any_class_shares_are_a_fixed_point():
     assert np.array_equal(np.asarray(theta0)[:, 2:].argmax(1), np.repeat(np.arange(3), counts))
     _, state, _ = run_figure1(jax.random.key(1), iters=200, initial=theta0)
     # Between components 8σ apart a particle's kernel weight from other classes is
-    # ~2e-5 of the total: whatever the shares, they stay (benchmarks/figure1.py --study).
+    # ~2e-5 of the total: whatever the shares, they stay (benchmarks/paper/figure1.py --study).
     np.testing.assert_array_equal(_shares(state.particles), np.array(counts) / 300)
 
 
@@ -113,8 +113,8 @@ def test_identical_components_reach_pi():
 
 
 def test_script_writes_the_png(tmp_path, capsys):
-    """benchmarks/figure1.py writes a PNG and prints its statistics."""
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "figure1.py"
+    """benchmarks/paper/figure1.py writes a PNG and prints its statistics."""
+    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "paper" / "figure1.py"
     spec = importlib.util.spec_from_file_location("figure1_script", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)

@@ -8,9 +8,9 @@ import pytest
 from mjstamp.cli import main
 from mjstamp.tasks import parse_overrides
 
-# The fuzz lives in benchmarks/: import it from the repository root.
+# The fuzz lives in tests/stress/: import it from the repository root.
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from benchmarks.fuzz_cli import fuzz_cli  # noqa: E402 - after the path set-up above
+from tests.stress.fuzz_cli import fuzz_cli  # noqa: E402 - after the path set-up above
 
 
 def test_random_command_lines_never_crash():

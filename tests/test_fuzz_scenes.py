@@ -1,4 +1,4 @@
-"""Fuzzed scenes (benchmarks/fuzz.py): a random valid MJCF builds a Scene or is refused in one line.
+"""Fuzzed scenes (tests/stress/fuzz.py): a random valid MJCF builds a Scene or is refused in a line.
 
 Plus one regression test per crash the fuzzer found, each on the smallest
 scene that shows it.
@@ -14,9 +14,12 @@ import mujoco
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-# The generator lives in benchmarks/ (not in the engine): import it from the repository root.
+# The generator lives in tests/stress/ (not in the engine): import it from the repository root.
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from benchmarks.fuzz import (  # noqa: E402 - after the path set-up above
+from mjstamp.errors import MjstampError  # noqa: E402
+from mjstamp.scenes import Scene  # noqa: E402
+from mjstamp.scenes.check import CheckSpec, _parameterisation  # noqa: E402
+from tests.stress.fuzz import (  # noqa: E402 - after the path set-up above
     CHECK_ARGS,
     build_scene,
     classify_check,
@@ -26,9 +29,6 @@ from benchmarks.fuzz import (  # noqa: E402 - after the path set-up above
     scene_mjcf,
     solve_in_process,
 )
-from mjstamp.errors import MjstampError  # noqa: E402
-from mjstamp.scenes import Scene  # noqa: E402
-from mjstamp.scenes.check import CheckSpec, _parameterisation  # noqa: E402
 
 SEED = 0  # the fixed seed of the slow CLI and solve tests
 
@@ -83,7 +83,7 @@ def test_classify_check_rejects_what_it_must():
     assert classify_check(-9, "", "")[0] == "crash"
 
 
-# Regression tests, one per crash found by `python -m benchmarks.fuzz`.
+# Regression tests, one per crash found by `python -m tests.stress.fuzz`.
 
 
 def test_discrete_integrator_is_refused_in_one_line():

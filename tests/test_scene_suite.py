@@ -1,9 +1,9 @@
-"""The scene suite (benchmarks/suite): user-style MJCF, tasks, C replays, ground-truth tools.
+"""The scene suite (examples/suite): user-style MJCF, tasks, C replays, ground-truth tools.
 
 Fast checks run no MJX compile: MJCF compiles in MuJoCo C, each scene keeps
 MuJoCo's defaults, each task declares, a handful of C replays decode (the
 decoder's small kinematics function is the only JIT). The slow test runs
-benchmarks/scene_suite.py end to end on the smallest scene with tiny settings.
+benchmarks/studies/scene_suite.py end to end on the smallest scene with tiny settings.
 """
 
 import importlib.util
@@ -23,7 +23,7 @@ from mjstamp import modes, plans
 from mjstamp.errors import MjstampError
 
 ROOT = pathlib.Path(__file__).parents[1]
-SUITE_DIR = ROOT / "benchmarks" / "suite"
+SUITE_DIR = ROOT / "examples" / "suite"
 XMLS = sorted(SUITE_DIR.glob("*.xml"))
 
 
@@ -186,8 +186,8 @@ def test_random_search_stops_in_its_wall_time(tasks):
 
 @pytest.mark.slow
 def test_scene_suite_runs_end_to_end(tmp_path):
-    """benchmarks/scene_suite.py on the smallest scene with tiny settings prints its JSON."""
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "scene_suite.py"), "--scenes",
+    """benchmarks/studies/scene_suite.py on the smallest scene, tiny settings, prints its JSON."""
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "studies" / "scene_suite.py"), "--scenes",
            "pendulum_bells", "--particles", "4", "--shots", "200", "--json",
            "--set", "svgd_max_iters=2", "--set", "sgd_max_iters=2", "--set", "min_iters=1"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, check=True)

@@ -1,4 +1,4 @@
-"""benchmarks/table2.py (Tables II and III): runs on a tiny setting, prints the paper's layout."""
+"""benchmarks/paper/table2.py (Tables II and III): runs on a tiny setting, in the paper's layout."""
 
 import json
 import subprocess
@@ -8,12 +8,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-# The tables live in benchmarks/: import them from the repository root.
+# The tables live in benchmarks/paper/: import them from the repository root.
 sys.path.insert(0, str(ROOT))
 
 
 def test_table_layouts():
-    from benchmarks.table2 import format_table
+    from benchmarks.paper.table2 import format_table
 
     rows = [{"task": t, "particles": n, "max_pushes": None, "dimension": 2,
              "runtime_mean_s": n / 10, "runtime_std_s": 0.5} for t in ("billiards", "pushing")
@@ -33,8 +33,8 @@ def test_table_layouts():
 def test_table2_runs_on_a_tiny_setting(tmp_path):
     saved = tmp_path / "table2.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.table2", "--tasks", "billiards", "--particles", "8",
-         "16", "--seeds", "2", "--devices", "1", "--set", "svgd_max_iters=3", "--set",
+        [sys.executable, "-m", "benchmarks.paper.table2", "--tasks", "billiards", "--particles",
+         "8", "16", "--seeds", "2", "--devices", "1", "--set", "svgd_max_iters=3", "--set",
          "sgd_max_iters=3", "--set", "screen=1", "--save", str(saved), "--json"],
         capture_output=True, text=True, timeout=1500, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -4,7 +4,7 @@
     result = baselines.run("blocking", task, target=10, cap_s=300, seed=0)
     result.summary()["distinct_verified_task_plans"]
 
-`mjstamp compare TASK` (and `benchmarks/table1.py`) time each method to the
+`mjstamp compare TASK` (and `benchmarks/paper/table1.py`) time each method to the
 number of distinct verified task plans STAMP's default run finds.
 """
 

@@ -41,7 +41,7 @@ what ``checkify`` flags first though) and are patched defensively:
    branch ``jp.power(1 - imp_x, power)`` is formed, then discarded by a
    ``where``, for rows deeper than the solimp width (``imp_x > 1``), where its
    base is negative: with a non-integer power (``solimp="... 1.5"``) its JVP
-   coefficient is NaN. Found by ``benchmarks/fuzz.py`` (random solimp). The
+   coefficient is NaN. Found by ``tests/stress/fuzz.py`` (random solimp). The
    base is clamped at 0, which changes only the discarded values.
 
 The rewrite is applied to the source text of the installed functions and each
@@ -299,7 +299,7 @@ def _implicit_solve(m, d):
     N.B. why not unrolled iterations: under vmap every particle runs every trip
     of a fixed-count loop, and reverse mode stores each; this loop stops when the
     slowest particle has converged and reverse mode goes through one Newton step.
-    Measured (benchmarks/gradient_modes.py, float64, 32-128 particles): as exact
+    Measured (benchmarks/perf/gradient_modes.py, float64, 32-128 particles): as exact
     as 4-8 unrolled iterations against finite differences of the scene's own
     physics (median 5e-10 to 1.4e-9, the finite differences' own floor), at
     0.8-1.5x the cost of one unrolled iteration and 0.3-0.5x that of four.

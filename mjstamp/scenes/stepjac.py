@@ -1,7 +1,7 @@
 """Gradients of MuJoCo C's own trajectories from MJX step Jacobians taken at C's states.
 
 An alternative gradient model (issue 28, item 5), measured by
-`benchmarks/c_values.py`. The trajectory is MuJoCo C's, with the scene's own
+`benchmarks/perf/c_values.py`. The trajectory is MuJoCo C's, with the scene's own
 solver (`rollout.replay`, `mujoco.rollout` on every core): the value of any
 cost is C's by construction. Only the local derivative of each step comes from
 MJX: for every particle and step t,
@@ -47,7 +47,7 @@ Usage::
         scene, traj, objective)           # objective(qpos, qvel) -> (n,), JAX
     g_theta = stepjac.pullback(lambda th: problem.inputs(th), theta, g_qpos0, g_qvel0, g_ctrl)
 
-The choice (issue 28, item 5), measured by `benchmarks/c_values.py`
+The choice (issue 28, item 5), measured by `benchmarks/perf/c_values.py`
 (benchmarks/results/c_values.json; 64 particles per task, float64, the shared
 2-core CPU, C's colliders ported, no GPU drawn):
 

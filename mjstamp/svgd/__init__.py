@@ -7,7 +7,7 @@ factories returning `step(state, key) -> (state, info)`, optax for updates).
 What it may import: the standard library, jax, numpy, optax, tqdm, and its own
 modules. Never `mujoco` nor `mjstamp.relax` (nor the rest of mjstamp): the engine
 knows nothing of physics or task plans, and toy densities such as Figure 1's live
-in `benchmarks/` (tests/test_svgd_imports.py checks this).
+in `benchmarks/paper/mixture.py` (tests/test_svgd_imports.py checks this).
 
 A task plugs in one batched, particle-separable function (row i of every output
 depends on particle i only), called once per step on the whole batch:

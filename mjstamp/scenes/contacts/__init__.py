@@ -22,7 +22,7 @@ A collider here has MJX's signature plus the pair's contact parameters:
 the pair's margin (which MJX's do not), to emit contacts within it; the
 contact's ``includemargin`` holds what C passes its colliders, margin + gap.
 
-Which ports a Scene installs. Every port gives C's contacts (`benchmarks/contacts.py`:
+Which ports a Scene installs. Every port gives C's contacts (`benchmarks/perf/contacts.py`:
 10,000 random poses per pair), but those through C's GJK/EPA (`convex`) cost
 0.7-2 ms per pair-collision on the 2-core CPU against MJX's 0.3-20 µs: their
 loops run a fixed number of trips so that reverse-mode AD goes through. Where

@@ -14,7 +14,7 @@ sets are matched by position (an optimal assignment) and compared field by
 field: distance, position, normal and frame (the normal and both tangents).
 
 Used by tests/test_contacts.py (a few hundred draws per pair) and
-benchmarks/contacts.py (10,000 or more per pair).
+benchmarks/perf/contacts.py (10,000 or more per pair).
 """
 
 from __future__ import annotations

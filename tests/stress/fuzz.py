@@ -24,7 +24,7 @@ With `--solve K` the first K scenes that build (and have a joint) also go
 through a tiny solve in-process (`generic_task`, `SOLVE_CONFIG`): ok (a
 `SolveResult`), rejected (an `MjstampError` of one line) or crash.
 
-Usage: python -m benchmarks.fuzz --scenes N [--check K] [--solve K] [--cli N] [--seed S]
+Usage: python -m tests.stress.fuzz --scenes N [--check K] [--solve K] [--cli N] [--seed S]
 [--json]
 (`--print-scene I` prints scene I's MJCF for seed S, to reproduce an example).
 Scene i of seed S is `scene_mjcf(S, i)`. The CLI's own arguments will be fuzzed
@@ -820,7 +820,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="of the scenes, how many (that build) compare their contacts "
                              "in MJX with MuJoCo C's at states along C rollouts")
     parser.add_argument("--cli", type=int, default=0, metavar="N",
-                        help="random command lines to try (benchmarks/fuzz_cli.py)")
+                        help="random command lines to try (tests/stress/fuzz_cli.py)")
     parser.add_argument("--cli-subprocesses", type=int, default=20, metavar="K",
                         help="of the rejected command lines, how many to rerun as processes")
     parser.add_argument("--seed", type=int, default=0)
@@ -848,7 +848,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.contacts:
         report.update(fuzz_contacts(args.contacts, seed=args.seed, progress=say))
     if args.cli:
-        from benchmarks.fuzz_cli import fuzz_cli  # noqa: PLC0415
+        from tests.stress.fuzz_cli import fuzz_cli  # noqa: PLC0415
 
         cli = fuzz_cli(args.cli, seed=args.seed, subprocesses=args.cli_subprocesses, say=say)
         report.update(cli)

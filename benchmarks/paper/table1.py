@@ -12,7 +12,7 @@ std over seeds of the time to N (the cap where N was not reached, marked
 Paper (one GPU): billiards, STAMP 24x faster than PDDLStream and 104x than
 Diverse LGP; pushing, 30x and 13x.
 
-Usage: python -m benchmarks.table1 [--tasks billiards pushing] [--seeds 3] [--cap 600]
+Usage: python -m benchmarks.paper.table1 [--tasks billiards pushing] [--seeds 3] [--cap 600]
            [--methods stamp,enumerate,blocking,cem] [--set KEY=VALUE ...] [--json]
 JSON: {task: {method: {runtime_mean_s, runtime_std_s, factor, factor_std,
        distinct_verified, reached, ...}}}
@@ -23,21 +23,23 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
-TASKS = {"billiards": {}, "pushing": {"max_pushes": 2}}
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import TASKS, add_devices_argument, add_tasks_argument  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
     """Runs the comparison for each task; prints the tables (or JSON)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="*", choices=sorted(TASKS), default=list(TASKS))
+    add_tasks_argument(parser)
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--cap", type=float, default=600.0, help="seconds per baseline and seed")
     parser.add_argument("--methods", default="stamp,enumerate,blocking,cem")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a solve or task setting for every task (e.g. particles=8)")
-    parser.add_argument("--devices", type=int, default=None,
-                        help="host devices (default: one per core, at most 8)")
+    add_devices_argument(parser)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
 

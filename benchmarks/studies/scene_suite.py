@@ -1,10 +1,11 @@
 """The scene suite: STAMP with default settings on user-style scenes it was not tuned for.
 
-For each scene of `benchmarks/suite/` (plain MJCF with MuJoCo's default
+For each scene of `examples/suite/` (plain MJCF with MuJoCo's default
 contacts, friction and gravity; tasks declared with the public API only, see
-suite/tasks.py) this builds the task, runs `mjstamp.solve.solve(task,
+examples/suite/tasks.py) this builds the task, runs `mjstamp.solve.solve(task,
 {"particles": N}, seed=S)` with every other setting at the library's default,
-and reports, against the scene's MuJoCo C ground truth (suite/ground_truth.py):
+and reports, against the scene's MuJoCo C ground truth
+(examples/suite/ground_truth.py):
 
 - physics divergence of the gradient model from the scene's own physics
   before and after the solve's calibration (95th percentile, m);
@@ -32,7 +33,7 @@ Targets (issue 11, `targets_particles`): at least 30% of the particles end as
 verified plans; STAMP finds at least as many distinct verified task plans as
 the random search in the same wall time (every scene), twice as many on half.
 
-Usage: python benchmarks/scene_suite.py [--scenes a,b] [--particles 128] [--seed 0]
+Usage: python benchmarks/studies/scene_suite.py [--scenes a,b] [--particles 128] [--seed 0]
        [--check N] [--json] [--save FILE]
 (`--set KEY=VALUE` overrides a solve setting, for smoke tests only: the
 benchmark is the defaults.)
@@ -47,7 +48,11 @@ import time
 import warnings
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import save_json, use_suite  # noqa: E402
+
+use_suite()  # the suite's tools import it as `suite`
 
 TARGET_VERIFIED_SHARE = 0.9
 TARGET_COVERAGE = 1.0
@@ -344,7 +349,7 @@ def main() -> None:
                               random=not args.no_random, progress=progress,
                               check=args.check))
         if args.save:
-            _save(args.save, _payload(args, devices, overrides, rows, t0))
+            save_json(args.save, _payload(args, devices, overrides, rows, t0), indent=1)
         r = rows[-1]
         print(f"{name}: " + (f"error: {r['error']}" if r.get("error") else
                              f"{r['verified']} verified plans, {r['task_plans_found']} task "
@@ -359,13 +364,6 @@ def _payload(args, devices, overrides: dict, rows: list[dict], t0: float) -> dic
     return {"benchmark": "scene_suite", "particles": args.particles, "seed": args.seed,
             "devices": devices, "overrides": overrides, "total_s": time.perf_counter() - t0,
             "scenes": rows}
-
-
-def _save(path: str, payload: dict) -> None:
-    from mjstamp.fileio import write_atomic
-
-    data = json.dumps(payload, indent=1).encode()
-    write_atomic(Path(path), lambda f: f.write(data))
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ particles (MJX rollouts against MuJoCo C with the scene's solver).
 With --collisions it prices MuJoCo C's colliders, ported (`mjstamp.scenes.
 contacts`), against MJX's own on the same calibrated model and particles.
 
-Usage: python benchmarks/fidelity_price.py [--tasks billiards,pushing,rolling_ball,...]
+Usage: python benchmarks/perf/fidelity_price.py [--tasks billiards,pushing,rolling_ball,...]
        [--particles 128] [--repeats 5] [--collisions] [--json]
 """
 
@@ -29,17 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-
-def _task(name: str):
-    from mjstamp import tasks
-
-    if name in tasks.names():
-        return tasks.load(name)[0]
-    from suite.tasks import SUITE
-
-    return SUITE[name]()
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import load_task as _task  # noqa: E402
 
 
 def _timed(problem, theta, repeats: int):

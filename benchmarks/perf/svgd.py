@@ -7,9 +7,9 @@ the median over repeats is reported. ratio = blackjax time / mjstamp time (> 1:
 mjstamp is faster).
 
 Usage:
-  python benchmarks/svgd.py            # table
-  python benchmarks/svgd.py --json     # JSON on stdout
-  python benchmarks/svgd.py --sizes 100x2 400x16 --repeats 9
+  python benchmarks/perf/svgd.py            # table
+  python benchmarks/perf/svgd.py --json     # JSON on stdout
+  python benchmarks/perf/svgd.py --sizes 100x2 400x16 --repeats 9
 """
 
 from __future__ import annotations

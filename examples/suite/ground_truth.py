@@ -10,7 +10,7 @@ about 100 times (share ± 10%). Results are cached on disk
 (~/.cache/mjstamp/modes), keyed by the declaration, the compiled model and a
 hash of the suite's code.
 
-Usage: python benchmarks/suite/ground_truth.py [--scenes a,b] [--shots N] [--json]
+Usage: python examples/suite/ground_truth.py [--scenes a,b] [--shots N] [--json]
 """
 
 from __future__ import annotations

@@ -37,7 +37,7 @@ analysis from the CPU parts and the arrays' sizes (C rollouts stay on the
 host's cores; the n·T Jacobians are one flat batch of independent step JVPs;
 memory n·T·2nv·(2nv + nu) float64).
 
-Usage: python benchmarks/c_values.py [--scenes billiards,pushing,...] [--particles 64]
+Usage: python benchmarks/perf/c_values.py [--scenes billiards,pushing,...] [--particles 64]
     [--repeats 3] [--batch 64] [--save]
 
 `--save` merges each scene's row into benchmarks/results/c_values.json
@@ -56,9 +56,11 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks import common  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results" / "c_values.json"
+RESULTS = common.RESULTS / "c_values.json"
 SCENES = ("billiards", "pushing", "bank_shot", "pusher", "rolling_ball", "pachinko",
           "arm_strike")
 METHODS = ("rollout-ad", "c+jac-sweep[mjx]", "c+jac-scan[mjx]", "c+vjp[mjx]",
@@ -66,13 +68,7 @@ METHODS = ("rollout-ad", "c+jac-sweep[mjx]", "c+jac-scan[mjx]", "c+vjp[mjx]",
 
 
 def _problem(name: str):
-    from mjstamp import tasks
-
-    if name in tasks.names():
-        return tasks.load(name)[0].build()
-    from suite.tasks import SUITE
-
-    return SUITE[name]().build()
+    return common.load_task(name).build()
 
 
 def _timed(fn, *args):
@@ -337,13 +333,9 @@ def main(argv=None) -> int:
     if args.save:
         result = _merge(result)
     result["gpu"] = _gpu_analysis(result["scenes"])
-    text = json.dumps(result, indent=1)
-    print(text)
+    print(json.dumps(result, indent=1))
     if args.save:
-        from mjstamp.fileio import write_atomic
-
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(RESULTS, lambda f: f.write((text + "\n").encode()))
+        common.save_json(RESULTS, result, indent=1, newline=True)
     return 0
 
 

@@ -32,8 +32,8 @@ first time compiles). Reports each process's wall time, the solve's
 paper's Table III compares across K (runtime nearly flat in K on a GPU).
 The ratio time(K=5) / time(K=1) is given for both.
 
-Usage: python benchmarks/solve.py [--json] [--particles N ...] [--devices K ...]
-       python benchmarks/solve.py --task pushing [--max-pushes 1 2 3 4 5] [--json]
+Usage: python benchmarks/perf/solve.py [--json] [--particles N ...] [--devices K ...]
+       python benchmarks/perf/solve.py --task pushing [--max-pushes 1 2 3 4 5] [--json]
 """
 
 from __future__ import annotations
@@ -46,6 +46,11 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import save_json  # noqa: E402
 
 VERBOSE = False  # --verbose: the solves' status lines go to this process's stderr
 
@@ -62,7 +67,7 @@ def _run_solve(cache: str | None, extra: list[str], task: str = "billiards"):
                          stderr=None if VERBOSE else subprocess.PIPE, text=True)
     wall = time.perf_counter() - t0
     if out.returncode != 0:
-        sys.exit(f"benchmarks/solve.py: {' '.join(cmd[2:])} exited {out.returncode}:\n"
+        sys.exit(f"benchmarks/perf/solve.py: {' '.join(cmd[2:])} exited {out.returncode}:\n"
                  f"{(out.stderr or '')[-3000:]}")
     return wall, json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -237,8 +242,7 @@ def main() -> None:
             if not args.json:
                 print(json.dumps(rows[-1], indent=1), flush=True)
             if args.save:
-                with open(args.save, "w") as f:
-                    json.dump(_billiards_result(rows, args.particles), f)
+                save_json(args.save, _billiards_result(rows, args.particles))
     result = _billiards_result(rows, args.particles)
     if args.json:
         print(json.dumps(result))

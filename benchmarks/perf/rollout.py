@@ -15,7 +15,7 @@ With `--devices K` (K host devices, one per core) the value-and-grad and
 forward rollouts are sharded over the particles (`mjstamp.parallel`), as a
 solve shards them; MuJoCo C uses every core either way.
 
-Usage: python benchmarks/rollout.py [--json] [--horizon 200] [--repeats 5] [--devices K]
+Usage: python benchmarks/perf/rollout.py [--json] [--horizon 200] [--repeats 5] [--devices K]
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ Targets: billiards, all 16 ground-truth task plans verified at seeds 0-2 and
 >= 30% of the particles verified; pushing K = 2, the SVGD phase makes >= 1/3 of
 the decrease of the mean cost and >= 6 verified push sequences at seeds 0-2.
 
-Usage: python -m benchmarks.particles [--tasks billiards pushing] [--seeds 3]
+Usage: python -m benchmarks.studies.particles [--tasks billiards pushing] [--seeds 3]
            [--set KEY=VALUE ...] [--compare KEY=VALUE ...] [--devices N] [--json]
 """
 
@@ -22,8 +22,12 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
-TASKS = {"billiards": {}, "pushing": {"max_pushes": 2}}
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import TASKS, add_devices_argument, add_tasks_argument  # noqa: E402
+
 TARGET_SHARE = 0.3
 TARGET_SVGD_SHARE = 1 / 3
 TARGET_PUSH_SEQUENCES = 6
@@ -68,14 +72,13 @@ def _targets(name: str, rows: list[dict]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Runs the solves; prints a line per solve (or one JSON object)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="*", choices=sorted(TASKS), default=list(TASKS))
+    add_tasks_argument(parser)
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a solve or task setting for every solve")
     parser.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
                         help="also solve with this setting changed (e.g. backtrack=false)")
-    parser.add_argument("--devices", type=int, default=None,
-                        help="host devices (default: one per core, at most 8)")
+    add_devices_argument(parser)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     if args.seeds < 1:

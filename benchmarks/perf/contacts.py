@@ -12,7 +12,7 @@ engine, the draws whose number of active contacts differs from C's and the
 worst difference of distance, position, normal and frame over the rest, and
 the time per pair-collision (jitted, vmapped over the draws, median of 3).
 
-Usage: python benchmarks/contacts.py [--pairs box-box,plane-box] [--draws 10000]
+Usage: python benchmarks/perf/contacts.py [--pairs box-box,plane-box] [--draws 10000]
        [--seed 1] [--json] [--save FILE]
 """
 
@@ -23,6 +23,10 @@ import json
 import sys
 import time
 from pathlib import Path
+
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import save_json  # noqa: E402
 
 PAIRS = (
     "plane-sphere", "plane-capsule", "plane-ellipsoid", "plane-cylinder", "plane-box",
@@ -113,8 +117,6 @@ def _save(path: Path, rows: list[dict], args) -> None:
     N.B. after every pair, so that a long run keeps what it measured; rows of
     other pairs already in the file (another run, the same draws and seed) stay.
     """
-    from mjstamp.fileio import write_atomic
-
     old = json.loads(path.read_text()) if path.exists() else {}
     keep = []
     if (old.get("draws"), old.get("seed")) == (args.draws, args.seed):
@@ -123,8 +125,7 @@ def _save(path: Path, rows: list[dict], args) -> None:
     order = {name: i for i, name in enumerate(PAIRS)}
     merged = sorted(keep + rows, key=lambda r: order.get(r["pair"], len(order)))
     out = {"draws": args.draws, "seed": args.seed, "precision": "float64", "pairs": merged}
-    payload = json.dumps(out, indent=1).encode()
-    write_atomic(path, lambda f: f.write(payload))
+    save_json(path, out, indent=1)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,7 +12,7 @@ Run it under different `XLA_FLAGS` to compare compiler settings (for example
 `--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL`, which records the
 rollout's loops into CUDA graphs); `--precision float32` compares precisions.
 
-Usage: python -m benchmarks.step_latency [--particles 100 800] [--repeats 10]
+Usage: python -m benchmarks.perf.step_latency [--particles 100 800] [--repeats 10]
            [--precision float64|float32] [--label NAME] [--json]
 """
 

@@ -6,7 +6,7 @@ shot exactly as `mjstamp solve` decodes plans, and lists every successful task
 plan with the share of the box it occupies. `mjstamp solve billiards` reports
 its coverage against this list (task plans occupying at least 0.1% of the box).
 
-Usage: python benchmarks/billiards_modes.py [--grid 200] [--json]
+Usage: python benchmarks/paper/billiards_modes.py [--grid 200] [--json]
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ like a solve's plans (same M, same seed). It reports the best score per task
 plan and per code, and how many codes have any plan at a given score: a robust
 solve's median cannot exceed the best plans' scores.
 
-Usage: python -m benchmarks.robustness [--tasks billiards pushing] [--seeds 1]
+Usage: python -m benchmarks.studies.robustness [--tasks billiards pushing] [--seeds 1]
            [--first-seed 0] [--nominal-only] [--robust 8] [--set KEY=VALUE ...]
            [--uncertain KIND[=SPREAD] ...] [--achievable SHOTS] [--devices N] [--json]
 """
@@ -43,10 +43,14 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-TASKS = {"billiards": {}, "pushing": {"max_pushes": 2}}
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import TASKS, add_devices_argument, add_tasks_argument  # noqa: E402
+
 TARGET_GAIN = 0.2
 TARGET_FOUND = {"billiards": ("distinct_verified_codes", 6),
                 "pushing": ("distinct_verified_task_plans", 3)}
@@ -165,7 +169,7 @@ def _task_block(name: str, rows: dict[str, list[dict]]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Runs the solves; prints a line per solve (or one JSON object)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="*", choices=sorted(TASKS), default=list(TASKS))
+    add_tasks_argument(parser)
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--first-seed", type=int, default=0,
                         help="seeds run: first-seed .. first-seed + seeds - 1")
@@ -180,8 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                         "spread=...)) instead of the default uncertainty")
     parser.add_argument("--achievable", type=int, default=None, metavar="SHOTS",
                         help="no solves: score every verified plan among SHOTS uniform draws")
-    parser.add_argument("--devices", type=int, default=None,
-                        help="host devices (default: one per core, at most 8)")
+    add_devices_argument(parser)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     if args.achievable is not None and args.achievable < 1:

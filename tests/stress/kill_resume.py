@@ -8,7 +8,7 @@ kill lands anywhere: mid-step, mid-write of the checkpoint), sends SIGKILL, and
 resumes with `--resume DIR`. A trial passes when the resumed plans.json equals
 the uninterrupted one apart from timings.
 
-Usage: python -m benchmarks.kill_resume [--trials 10] [--seed 0] [--json]
+Usage: python -m tests.stress.kill_resume [--trials 10] [--seed 0] [--json]
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ and `crash`: any other exception, another exit status, or a rejection of more
 than one line. Accepted solves are also checked for what they were given:
 `--set flag=False` must mean False.
 
-Usage: python -m benchmarks.fuzz_cli [--invocations N] [--seed S] [--subprocesses K] [--json]
+Usage: python -m tests.stress.fuzz_cli [--invocations N] [--seed S] [--subprocesses K] [--json]
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ verification), mean ± std over seeds, in the paper's layout.
 Paper (one GPU, 10 seeds): Table II billiards 26.1 s (100 particles) to 33.5 s
 (800), pushing 149.7 to 174 s; Table III 168.7 s (K = 1) to 178.3 s (K = 5).
 
-Usage: python -m benchmarks.table2 [--table 2|3] [--tasks billiards pushing]
+Usage: python -m benchmarks.paper.table2 [--table 2|3] [--tasks billiards pushing]
            [--particles 100 200 400 800] [--max-pushes 1 2 3 4 5] [--seeds 3]
            [--set KEY=VALUE ...] [--save FILE] [--json]
 JSON: {"table": 2, "rows": [{"task", "particles", "max_pushes", "dimension",
@@ -27,6 +27,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import add_devices_argument, save_json  # noqa: E402
 
 
 def _row(name: str, overrides: dict, seeds: int, say) -> dict:
@@ -81,8 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-pushes", type=int, nargs="*", default=[1, 2, 3, 4, 5])
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    parser.add_argument("--devices", type=int, default=None,
-                        help="host devices (default: one per core, at most 8)")
+    add_devices_argument(parser)
     parser.add_argument("--save", metavar="FILE",
                         help="write the JSON so far to FILE after every row (a long run "
                              "keeps what it measured)")
@@ -103,8 +106,6 @@ def main(argv: list[str] | None = None) -> int:
 
     import jax
 
-    from mjstamp.fileio import write_atomic
-
     rows = []
     result = {"table": args.table, "devices": len(jax.devices()),
               "device_kind": jax.devices()[0].platform, "cpus": os.cpu_count(),
@@ -113,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     def add(row: dict) -> None:
         rows.append(row)
         if args.save:
-            write_atomic(Path(args.save), lambda f: f.write(json.dumps(result).encode()))
+            save_json(args.save, result)
 
     if args.table == 2:
         for name in args.tasks:

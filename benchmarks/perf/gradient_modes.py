@@ -53,7 +53,7 @@ box rails and a block, frictional condim-3 contacts, no floor, dt 0.005, 400 ste
 and `box_wall` (a 0.5 kg box on x, y, z slide joints sliding on a floor under
 gravity into a wall, dt 0.01, 150 steps).
 
-Usage: python benchmarks/gradient_modes.py [--scenes billiards,bank_table,box_wall]
+Usage: python benchmarks/perf/gradient_modes.py [--scenes billiards,bank_table,box_wall]
     [--options one-iteration,scan-4,...] [--particles 32] [--repeats 5] [--json] [--save]
 """
 
@@ -72,7 +72,12 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parent / "results" / "gradient_modes.json"
+if __package__ in (None, ""):  # run by its path: the repository root holds `benchmarks`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks.common import RESULTS as RESULTS_DIR  # noqa: E402
+from benchmarks.common import save_json  # noqa: E402
+
+RESULTS = RESULTS_DIR / "gradient_modes.json"
 
 BANK_TABLE = """
 <mujoco model="bank_table">
@@ -542,8 +547,6 @@ def main(argv=None) -> int:
 
 def save(result: dict) -> None:
     """Adds `result` to RESULTS, replacing the run with the same arguments."""
-    from mjstamp.fileio import write_atomic
-
     runs = []
     if RESULTS.is_file():
         try:
@@ -551,10 +554,7 @@ def save(result: dict) -> None:
         except (ValueError, AttributeError):
             runs = []  # an unreadable file is rewritten
     runs = [r for r in runs if r.get("args") != result["args"]] + [result]
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    payload = (json.dumps({"benchmark": "gradient_modes", "runs": runs}, indent=1)
-               + "\n").encode()
-    write_atomic(RESULTS, lambda f: f.write(payload))
+    save_json(RESULTS, {"benchmark": "gradient_modes", "runs": runs}, indent=1, newline=True)
 
 
 if __name__ == "__main__":

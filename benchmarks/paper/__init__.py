@@ -1,0 +1,1 @@
+"""Reproductions of the paper: Figure 1 (with its toy, mixture.py), Tables I-III, Fig. 7's modes."""

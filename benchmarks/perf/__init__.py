@@ -1,0 +1,1 @@
+"""Performance and accuracy: rollouts, SVGD steps, solves, gradients, colliders against C."""

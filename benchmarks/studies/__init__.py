@@ -1,0 +1,1 @@
+"""Studies of what a solve finds: particles, robustness, the scene suite."""
