@@ -357,7 +357,7 @@ class LoopSnapshot(NamedTuple):
     counters: dict
 
 
-# N.B. over 80 lines: 36 of them the docstring; the loop itself is `_Loop`.
+# N.B. over 80 lines: 50 of them the docstring, 16 the signature; the loop itself is `_Loop`.
 def run_stamp(
     logdensity_fn: LogDensityFn,
     initial_particles: jax.Array | Callable[[jax.Array], jax.Array],
