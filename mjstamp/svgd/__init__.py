@@ -27,7 +27,8 @@ their per-particle Jacobians come from that one batched call. Without features,
 return (log ρ, an (n, 0) array) and use any kernel (default `rbf()`): one
 signature, `logdensity(θ) -> (logp, aux)`, as `jax.value_and_grad(has_aux=True)`
 reads it. See
-`mjstamp.svgd.steps` for the contract and `run_stamp` for the loop.
+`mjstamp.svgd.steps` for the contract, `run_stamp` for the loop and
+`mjstamp.svgd.guards` for the pure guards around its steps (backtracking, re-draws).
 
 References:
   STAMP §III-A, §IV-A/B, Algorithm 1, App. B-C, App. C-B.
