@@ -31,7 +31,7 @@ import numpy as np
 from mjstamp import __version__, parallel
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import probe, write_atomic
-from mjstamp.svgd import IterationRecord, LoopSnapshot
+from mjstamp.svgd import LoopSnapshot, StampDiagnostics
 
 __all__ = ["FILENAME", "Checkpointer", "Interrupted", "describe", "fingerprint", "load",
            "read_meta", "save"]
@@ -52,14 +52,14 @@ def fingerprint(task_fingerprint: str, settings: Mapping[str, Any], seed: int) -
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
-def _row_json(row: IterationRecord) -> dict:
+def _row_json(row: StampDiagnostics) -> dict:
     return {k: np.asarray(v).tolist() for k, v in row._asdict().items()}
 
 
-def _row(data: dict) -> IterationRecord:
+def _row(data: dict) -> StampDiagnostics:
     wide = ("bandwidth", "displacement_per_coordinate")
-    return IterationRecord(**{k: np.asarray(data[k], float) if k in wide else data[k]
-                              for k in IterationRecord._fields})
+    return StampDiagnostics(**{k: np.asarray(data[k], float) if k in wide else data[k]
+                               for k in StampDiagnostics._fields})
 
 
 def save(path: Path, snap: LoopSnapshot, meta: Mapping[str, Any]) -> None:

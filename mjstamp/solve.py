@@ -347,15 +347,11 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, 
         # Discrete SVGD (eq. 4): the surrogate ρ relaxes actions with Γ̃, the target
         # p(Γ(θ)) and the SGD refinement take them at Γ. Γ has no gradient, so SGD
         # leaves the logits alone: App. E fixes them during SGD the same way.
-        discrete = {"log_target_fn": lambda th: problem.log_target(th)[0],
-                    "sgd_logdensity_fn": problem.sgd_logdensity}
-    jit = problem_jit(problem)
-    logdensity = parallel.shard_particles(problem.logdensity, devices)
-    if discrete:
-        target = parallel.shard_particles(problem.log_target, devices)
-        discrete = {"log_target_fn": lambda th: target(th)[0],
+        discrete = {"log_target_fn": parallel.shard_particles(problem.log_target, devices),
                     "sgd_logdensity_fn": parallel.shard_particles(problem.sgd_logdensity,
                                                                   devices)}
+    jit = problem_jit(problem)
+    logdensity = parallel.shard_particles(problem.logdensity, devices)
     result = svgd.run_stamp(
         logdensity, theta0, problem.kernel, _stamp_config(cfg, problem, seed),
         svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),

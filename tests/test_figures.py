@@ -119,12 +119,12 @@ def test_loss_figure_shows_both_phases(result):
 
 
 def _valleys(x):
-    """Batched log density: a flat plateau with three narrow Gaussian valleys (no MuJoCo)."""
+    """Batched (log density, no aux): a flat plateau with three narrow Gaussian valleys."""
     import jax.numpy as jnp
 
     centres = jnp.array([[1.0, 1.0], [-1.5, 0.5], [0.5, -1.5]])
     d2 = jnp.sum((x[:, None] - centres[None]) ** 2, -1)
-    return 5.0 * jnp.sum(jnp.exp(-d2 / (2 * 0.15**2)), 1) - 5.0
+    return 5.0 * jnp.sum(jnp.exp(-d2 / (2 * 0.15**2)), 1) - 5.0, jnp.zeros((len(x), 0))
 
 
 def test_diagnostics_figure_draws_what_the_steps_recorded(tmp_path):

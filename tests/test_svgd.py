@@ -21,6 +21,11 @@ from mjstamp.svgd import (
 KEY = jax.random.key(0)
 
 
+def with_no_aux(logp):
+    """A batched (n, d) -> (n,) log density in the engine's signature, (logp, (n, 0) aux)."""
+    return lambda x: (logp(x), jnp.zeros((x.shape[0], 0), x.dtype))
+
+
 def _random_target(d, seed):
     """A random tilted Gaussian log density for one particle, (d,) -> ()."""
     k1, k2 = jax.random.split(jax.random.key(seed))
@@ -58,7 +63,7 @@ def test_one_step_equals_blackjax(n, d, seed, bandwidth):
         return kernel_step(state, jax.grad(logp), blackjax_svgd.rbf_kernel), ell
 
     expected, length_scale = blackjax_step(x0)
-    step = jax.jit(build_svgd_step(jax.vmap(logp), kernel, optimizer))
+    step = jax.jit(build_svgd_step(with_no_aux(jax.vmap(logp)), kernel, optimizer))
     state, info = step(init(x0, optimizer), KEY)
     np.testing.assert_allclose(
         state.particles, expected.particles, rtol=1e-5, atol=1e-5
@@ -91,7 +96,8 @@ def test_dsvgd_direction_is_importance_weighted_eq4():
         kernel = rbf(groups=[[0, 1], [2, 3]])
         phi, info = jax.jit(
             lambda p: stein_direction(
-                jax.vmap(logp1), kernel, p, log_target_fn=jax.vmap(log_target1)
+                with_no_aux(jax.vmap(logp1)), kernel, p,
+                log_target_fn=with_no_aux(jax.vmap(log_target1)),
             )
         )(x)
         log_w = jax.vmap(logp1)(x) - jax.vmap(log_target1)(x)
@@ -102,10 +108,12 @@ def test_dsvgd_direction_is_importance_weighted_eq4():
         )
         np.testing.assert_allclose(phi, expected, rtol=1e-9, atol=1e-12)
         # With p(Γ(x)) = ρ(x) every weight is 1/n: discrete SVGD is SVGD.
-        phi_svgd, _ = jax.jit(lambda p: stein_direction(jax.vmap(logp1), kernel, p))(x)
+        phi_svgd, _ = jax.jit(lambda p: stein_direction(with_no_aux(jax.vmap(logp1)), kernel,
+                                                     p))(x)
         phi_equal, _ = jax.jit(
             lambda p: stein_direction(
-                jax.vmap(logp1), kernel, p, log_target_fn=jax.vmap(logp1)
+                with_no_aux(jax.vmap(logp1)), kernel, p,
+                log_target_fn=with_no_aux(jax.vmap(logp1)),
             )
         )(x)
         np.testing.assert_allclose(phi_equal, phi_svgd, rtol=1e-10, atol=1e-12)
@@ -131,7 +139,7 @@ def test_sgd_step_is_gradient_ascent():
     logp1 = _random_target(3, 5)
     x0 = jax.random.normal(jax.random.key(6), (5, 3))
     optimizer = optax.sgd(0.05)
-    state, info = jax.jit(build_sgd_step(jax.vmap(logp1), optimizer))(
+    state, info = jax.jit(build_sgd_step(with_no_aux(jax.vmap(logp1)), optimizer))(
         init(x0, optimizer), KEY
     )
     expected = x0 + 0.05 * jax.vmap(jax.grad(logp1))(x0)
@@ -148,7 +156,7 @@ def test_any_optax_transformation_works_and_reports_its_learning_rate():
         optax.clip_by_global_norm(1.0),
         optax.inject_hyperparams(optax.adam)(learning_rate=schedule),
     )
-    step = jax.jit(build_svgd_step(jax.vmap(logp1), rbf(), optimizer))
+    step = jax.jit(build_svgd_step(with_no_aux(jax.vmap(logp1)), rbf(), optimizer))
     state = init(x0, optimizer)
     rates = []
     for _ in range(3):
@@ -156,7 +164,7 @@ def test_any_optax_transformation_works_and_reports_its_learning_rate():
         rates.append(float(info.learning_rate))
     np.testing.assert_allclose(rates, [0.1, 0.05, 0.025], rtol=1e-6)
     # optax.sgd does not expose its rate: reported as NaN, not guessed.
-    plain = jax.jit(build_svgd_step(jax.vmap(logp1), rbf(), optax.sgd(0.1)))
+    plain = jax.jit(build_svgd_step(with_no_aux(jax.vmap(logp1)), rbf(), optax.sgd(0.1)))
     assert np.isnan(float(plain(init(x0, optax.sgd(0.1)), KEY)[1].learning_rate))
 
 
@@ -181,7 +189,7 @@ def test_features_from_the_log_density_equal_a_separate_feature_map(jacobian):
         _billiards_like, feature_kernel(), optimizer, jacobian=jacobian
     )
     separate = build_svgd_step(
-        lambda p: _billiards_like(p)[0],
+        with_no_aux(lambda p: _billiards_like(p)[0]),
         feature_kernel(feature_fn=lambda p: _billiards_like(p)[1]),
         optimizer,
     )
@@ -195,7 +203,7 @@ def test_features_from_the_log_density_equal_a_separate_feature_map(jacobian):
 @pytest.mark.parametrize(
     "kernel, fn, jacobian",
     [
-        (rbf(), lambda p: _billiards_like(p)[0], "auto"),
+        (rbf(), with_no_aux(lambda p: _billiards_like(p)[0]), "auto"),
         (feature_kernel(), _billiards_like, "rev"),
         (feature_kernel(), _billiards_like, "fwd"),
     ],
@@ -224,7 +232,7 @@ def test_nonfinite_particles_get_zero_weight_and_do_not_poison_others():
 
     x0 = jnp.concatenate([jnp.array([[3.0, 0.0]]), jax.random.normal(KEY, (7, 2))])
     optimizer = optax.sgd(0.1)
-    state, info = jax.jit(build_svgd_step(logp, rbf(), optimizer))(
+    state, info = jax.jit(build_svgd_step(with_no_aux(logp), rbf(), optimizer))(
         init(x0, optimizer), KEY
     )
     assert np.all(np.isfinite(state.particles))
@@ -243,28 +251,36 @@ def test_nonfinite_particles_get_zero_weight_and_do_not_poison_others():
         ),
         (
             lambda: jax.jit(
-                build_svgd_step(lambda p: -jnp.sum(p**2, 1), rbf(), optax.sgd(0.1))
+                build_svgd_step(with_no_aux(lambda p: -jnp.sum(p**2, 1)), rbf(),
+                                optax.sgd(0.1))
             )(init(jnp.zeros((1, 2)), optax.sgd(0.1)), KEY),
             r"at least 2 particles \(n >= 2\); got n=1",
         ),
+        (  # one signature: a bare (n,) array is not one
+            lambda: jax.jit(
+                build_svgd_step(lambda p: -jnp.sum(p**2, 1), rbf(), optax.sgd(0.1))
+            )(init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY),
+            r"logdensity_fn must return \(logp \(n,\), aux \(n, f\)\)",
+        ),
         (
             lambda: jax.jit(
-                build_svgd_step(lambda p: -jnp.sum(p**2), rbf(), optax.sgd(0.1))
+                build_svgd_step(lambda p: (-jnp.sum(p**2), jnp.zeros((4, 0))), rbf(),
+                                optax.sgd(0.1))
             )(init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY),
             r"log-densities of shape \(n,\) = \(4,\)",
         ),
         (
             lambda: jax.jit(
                 build_svgd_step(
-                    lambda p: -jnp.sum(p**2, 1), feature_kernel(), optax.sgd(0.1)
+                    with_no_aux(lambda p: -jnp.sum(p**2, 1)), feature_kernel(), optax.sgd(0.1)
                 )
             )(init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY),
-            r"must return \(logp \(n,\), features \(n, f\)\)",
+            r"must return \(logp \(n,\), features \(n, f\)\) with f >= 1",
         ),
         (
             lambda: jax.jit(
                 build_svgd_step(
-                    lambda p: -jnp.sum(p**2, 1), rbf(groups=[[0]]), optax.sgd(0.1)
+                    with_no_aux(lambda p: -jnp.sum(p**2, 1)), rbf(groups=[[0]]), optax.sgd(0.1)
                 )
             )(init(jnp.zeros((4, 2)), optax.sgd(0.1)), KEY),
             r"RBF groups must cover every coordinate .* \[1\] are in none",
@@ -304,7 +320,7 @@ def test_sgd_step_forward_mode_scores_equal_reverse_mode():
 
     x = jax.random.normal(jax.random.key(0), (5, 3))
     opt = optax.sgd(0.1)
-    out = [build_sgd_step(logp, opt, jacobian=mode)(init(x, opt), jax.random.key(1))
+    out = [build_sgd_step(with_no_aux(logp), opt, jacobian=mode)(init(x, opt), jax.random.key(1))
            for mode in ("rev", "fwd")]
     np.testing.assert_allclose(out[0][0].particles, out[1][0].particles, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(out[0][1].logdensity, out[1][1].logdensity)
@@ -324,10 +340,11 @@ def test_sgd_step_auto_mode_is_forward_for_d_up_to_2_else_reverse():
     logp.defvjp(lambda x: (logp(x), x), lambda x, g: (-2.0 * x * g[:, None],))
     opt = optax.sgd(0.1)
     x3 = jax.random.normal(jax.random.key(0), (4, 3))
-    state, _ = build_sgd_step(logp, opt)(init(x3, opt), jax.random.key(1))
+    state, _ = build_sgd_step(with_no_aux(logp), opt)(init(x3, opt), jax.random.key(1))
     np.testing.assert_allclose(state.particles, x3 * 0.8, rtol=1e-12)
     x2 = x3[:, :2]
     with pytest.raises(TypeError, match="custom_vjp"):
-        build_sgd_step(logp, opt)(init(x2, opt), jax.random.key(1))
-    state, _ = build_sgd_step(logp, opt, jacobian="rev")(init(x2, opt), jax.random.key(1))
+        build_sgd_step(with_no_aux(logp), opt)(init(x2, opt), jax.random.key(1))
+    state, _ = build_sgd_step(with_no_aux(logp), opt, jacobian="rev")(init(x2, opt),
+                                                                       jax.random.key(1))
     np.testing.assert_allclose(state.particles, x2 * 0.8, rtol=1e-12)

@@ -29,9 +29,9 @@ X0 = np.array([[0.0, 0.0], [1.0, -0.5], [-0.7, 0.4], [2.0, 1.5], [0.3, -2.2]])
 
 
 def gaussian(x):
-    """Batched log N(x; μ, Σ) + const, (n, 2) -> (n,)."""
+    """Batched log N(x; μ, Σ) + const, (n, 2) -> ((n,), (n, 0) aux)."""
     r = x - jnp.asarray(MU)
-    return -0.5 * jnp.einsum("ni,ij,nj->n", r, jnp.asarray(PRECISION), r)
+    return -0.5 * jnp.einsum("ni,ij,nj->n", r, jnp.asarray(PRECISION), r), jnp.zeros((len(x), 0))
 
 
 def _hand_terms(x, a):
@@ -61,7 +61,10 @@ def test_diagnostics_match_a_hand_computation_on_a_2d_gaussian(weighted):
         optimizer = optax.sgd(STEP)
         if weighted:  # discrete SVGD: a_j ∝ ρ(x_j) / p(Γ(x_j)), here a tilted target
             tilt = np.array([0.3, -0.2])
-            step = build_dsvgd_step(gaussian, lambda t: gaussian(t) + t @ tilt, kernel, optimizer)
+            def tilted(t):
+                return gaussian(t)[0] + t @ tilt, jnp.zeros((len(t), 0))
+
+            step = build_dsvgd_step(gaussian, tilted, kernel, optimizer)
             log_w = -X0 @ tilt
             a = np.exp(log_w - log_w.max())
             a /= a.sum()
@@ -130,7 +133,7 @@ def test_run_stamp_records_the_terms_and_nan_where_sgd_has_none():
 
 def plateau(x):
     """Flat (zero score) inside the unit disc, a bowl −(‖x‖² − 1)² outside."""
-    return -jax.nn.relu(jnp.sum(x**2, axis=1) - 1.0) ** 2
+    return -jax.nn.relu(jnp.sum(x**2, axis=1) - 1.0) ** 2, jnp.zeros((len(x), 0))
 
 
 def test_near_zero_share_counts_the_particles_on_a_plateau():

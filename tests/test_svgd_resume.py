@@ -12,7 +12,7 @@ def _logp(x):
     # A Gaussian bump on a plateau: particles out on the flat feel no gradient and sit
     # below the median, so the stall rescue re-draws them (its counters must resume too).
     bump = -0.5 * jnp.sum((x - jnp.array([0.5, -0.2])) ** 2 / jnp.array([0.3, 0.8]), axis=1)
-    return jnp.maximum(bump, -8.0)
+    return jnp.maximum(bump, -8.0), jnp.zeros((x.shape[0], 0), x.dtype)
 
 
 def _redraw(key, k):
@@ -82,3 +82,26 @@ def test_a_snapshot_of_another_shape_is_refused(straight):
     bad = snaps[2]._replace(particles=np.zeros((3, 2)))
     with pytest.raises(ValueError, match="cannot continue"):
         _run(resume=bad)
+
+
+def test_a_run_resumed_right_after_a_nonfinite_redraw_ends_where_the_straight_one_ends():
+    """The non-finite count of a particle re-drawn at the snapshot's iteration resumes too."""
+
+    def logp(x):
+        value = jnp.where(x[:, 0] > 2.0, jnp.nan, -0.5 * jnp.sum(x**2, axis=1))
+        return value, jnp.zeros((x.shape[0], 0), x.dtype)
+
+    def redraw(key, k):  # back into the NaN region, every time
+        return 3.0 + jax.random.uniform(key, (k, 2))
+
+    x0 = jnp.array([[3.0, 0.0], [0.5, 0.5], [-0.5, 0.2]])
+    config = StampConfig(svgd_max_iters=6, sgd_max_iters=0, min_iters=6, nonfinite_redraw=1)
+    snaps = []
+    straight = run_stamp(logp, x0, rbf(), config, progress=False, redraw=redraw,
+                         checkpoint=lambda make: snaps.append(make()))
+    # Re-drawn, then a grace iteration for the fresh particle, and so on.
+    np.testing.assert_array_equal(straight.diagnostics.nonfinite_redrawn, [1, 0] * 3)
+    resumed = run_stamp(logp, x0, rbf(), config, progress=False, redraw=redraw, resume=snaps[0])
+    np.testing.assert_array_equal(resumed.diagnostics.nonfinite_redrawn,
+                                  straight.diagnostics.nonfinite_redrawn)
+    np.testing.assert_array_equal(resumed.particles, straight.particles)

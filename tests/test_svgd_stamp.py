@@ -21,9 +21,15 @@ from mjstamp.svgd import (
 MODES = jnp.array([[2.0, 0.0], [-2.0, 0.0]])
 
 
+def no_aux(x):
+    """The aux of a log density without kernel features: an (n, 0) array."""
+    return jnp.zeros((x.shape[0], 0), x.dtype)
+
+
 def two_modes(x):
-    """Batched log density with two unit-weight modes at (±2, 0), σ = 0.5."""
-    return jax.nn.logsumexp(-jnp.sum((x[:, None] - MODES[None]) ** 2, -1) / 0.5, axis=1)
+    """Batched log density with two unit-weight modes at (±2, 0), σ = 0.5; (logp, aux)."""
+    logp = jax.nn.logsumexp(-jnp.sum((x[:, None] - MODES[None]) ** 2, -1) / 0.5, axis=1)
+    return logp, no_aux(x)
 
 
 def uniform_init(key):
@@ -122,7 +128,7 @@ def test_discrete_svgd_and_density_features_plug_in():
     """log_target_fn and density features run through run_stamp."""
 
     def with_features(x):
-        return two_modes(x), jax.nn.sigmoid(4 * x[:, :1])  # "which side" feature
+        return two_modes(x)[0], jax.nn.sigmoid(4 * x[:, :1])  # "which side" feature
 
     config = StampConfig(svgd_max_iters=20, sgd_max_iters=5)
     res = run_stamp(
@@ -223,7 +229,7 @@ def test_has_converged(means, moves, expected):
         ),
         (
             lambda: run_stamp(
-                lambda x: jnp.full(x.shape[0], jnp.nan),
+                lambda x: (jnp.full(x.shape[0], jnp.nan), no_aux(x)),
                 jnp.ones((4, 2)),
                 progress=False,
             ),
@@ -245,7 +251,7 @@ def test_bad_input_raises_clear_value_error(make, match):
 
 def bowl_and_plateau(x):
     """The log density −min(x², 1): a bowl at 0 inside |x| < 1, a flat plateau outside."""
-    return -jnp.minimum(jnp.sum(x**2, -1), 1.0)
+    return -jnp.minimum(jnp.sum(x**2, -1), 1.0), no_aux(x)
 
 
 def test_stall_rescue_redraws_a_plateau_particle_and_leaves_a_converging_one():
@@ -283,7 +289,7 @@ def test_stall_rescue_redraws_a_plateau_particle_and_leaves_a_converging_one():
 
 def narrow_valley(x):
     """A valley 0.01 wide at x = 0.3 (log ρ = −(x − 0.3)²/10⁻⁴), steep beside it."""
-    return -jnp.sum((x - 0.3) ** 2, -1) / 1e-4
+    return -jnp.sum((x - 0.3) ** 2, -1) / 1e-4, no_aux(x)
 
 
 def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
@@ -294,7 +300,7 @@ def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
     In SGD each particle ends at the best point it visited.
     """
     start = jnp.array([[0.3 + 1e-3], [0.3 - 2e-3]])
-    start_logp = np.asarray(narrow_valley(start))
+    start_logp = np.asarray(narrow_valley(start)[0])
     svgd_only = StampConfig(svgd_learning_rate=0.05, svgd_max_iters=30, sgd_max_iters=0,
                             min_iters=30)
     kernel = rbf(bandwidth=1e-4)  # the two particles do not feel each other
@@ -317,7 +323,7 @@ def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
     free = run_stamp(narrow_valley, start, kernel, dataclasses.replace(sgd_only, backtrack=False),
                      progress=False)
     best = run_stamp(narrow_valley, start, kernel, sgd_only, progress=False)
-    assert np.all(np.asarray(narrow_valley(free.particles)) < start_logp - 1)
+    assert np.all(np.asarray(narrow_valley(free.particles)[0]) < start_logp - 1)
     np.testing.assert_array_equal(best.particles, start)
     assert best.diagnostics.backtracked.sum() == 0
     with pytest.raises(ValueError, match="backtrack must be True or False"):
@@ -326,7 +332,7 @@ def test_backtrack_keeps_a_particle_in_a_valley_narrower_than_the_step():
 
 def slope(x):
     """Log ρ = −x: every step towards larger x loses 0.1 nat per 0.1 moved."""
-    return -x[:, 0]
+    return -x[:, 0], no_aux(x)
 
 
 def test_backtrack_bounds_small_falls_by_the_peak_not_the_last_point():
@@ -354,7 +360,7 @@ def test_backtrack_bounds_small_falls_by_the_peak_not_the_last_point():
 
 def cliff(x):
     """Log ρ = x up to a cliff at x = 0.35, NaN beyond it (a rollout that blew up)."""
-    return jnp.where(x[:, 0] < 0.35, x[:, 0], jnp.nan)
+    return jnp.where(x[:, 0] < 0.35, x[:, 0], jnp.nan), no_aux(x)
 
 
 def test_backtrack_takes_a_step_into_a_non_finite_region_back():
@@ -374,7 +380,7 @@ def test_backtrack_takes_a_step_into_a_non_finite_region_back():
     assert d.nonfinite_particles[1] == 1 and d.backtracked[1] == 1  # over the cliff, back
     assert drawn == [] and result.nonfinite_redrawn.sum() == 0  # never frozen twice in a row
     final = np.asarray(result.particles)[:, 0]
-    assert np.all(np.isfinite(np.asarray(cliff(result.particles))))
+    assert np.all(np.isfinite(np.asarray(cliff(result.particles)[0])))
     assert 0.3 < final[0] < 0.35
     plain = run_stamp(cliff, start, kernel, dataclasses.replace(config, backtrack=False),
                       progress=False, redraw=redraw)
@@ -383,7 +389,7 @@ def test_backtrack_takes_a_step_into_a_non_finite_region_back():
 
 def _with_features(x):
     """two_modes with features of the same evaluation: ψ(θ) = (sin θ₁, θ₂²)."""
-    return two_modes(x), jnp.stack([jnp.sin(x[:, 0]), x[:, 1] ** 2], axis=1)
+    return two_modes(x)[0], jnp.stack([jnp.sin(x[:, 0]), x[:, 1] ** 2], axis=1)
 
 
 def _compiled_names(logdensity_fn, kernel, init, **config):
@@ -444,7 +450,7 @@ def test_a_step_is_its_update_of_its_evaluation():
     opt = optax.adam(0.1)
     steps = [build_svgd_step(two_modes, None, opt),
              build_svgd_step(_with_features, feature_kernel(), opt),
-             build_dsvgd_step(two_modes, lambda t: two_modes(t) - 1.0, None, opt),
+             build_dsvgd_step(two_modes, lambda t: (two_modes(t)[0] - 1.0, no_aux(t)), None, opt),
              build_sgd_step(two_modes, opt)]
     for step in steps:
         state = init(x, opt)

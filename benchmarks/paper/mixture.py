@@ -106,6 +106,11 @@ def log_target(mixture: LabelledMixture, theta: jax.Array) -> jax.Array:
     return jnp.sum(hard * component_log_densities(mixture, x), axis=-1)
 
 
+def _no_aux(theta: jax.Array) -> jax.Array:
+    """The aux of a log density without kernel features (`svgd`'s one signature): (n, 0)."""
+    return jnp.zeros((theta.shape[0], 0), theta.dtype)
+
+
 def label_kernel(num_classes: int, temperature: float = 1.0) -> Kernel:
     """RBF over [x, Γ̃(a)] with a median bandwidth for each block.
 
@@ -228,8 +233,8 @@ def run_figure1(
         # N.B. β only scales the two log densities, so one step is built per update
         # inside the scan (building it is free: it is a closure).
         step = build_dsvgd_step(
-            lambda t: beta * log_surrogate(mixture, t, temperature),
-            lambda t: beta * log_target(mixture, t),
+            lambda t: (beta * log_surrogate(mixture, t, temperature), _no_aux(t)),
+            lambda t: (beta * log_target(mixture, t), _no_aux(t)),
             kernel,
             optimizer,
         )

@@ -69,7 +69,8 @@ def bench(n: int, d: int, *, repeats: int, steps: int, learning_rate: float = 1e
 
     # mjstamp: same kernel with bandwidth s = √length_scale, batched log density.
     mj_raw = build_svgd_step(
-        jax.vmap(logp), rbf(bandwidth=length_scale**0.5), optimizer
+        lambda x: (jax.vmap(logp)(x), jnp.zeros((x.shape[0], 0), x.dtype)),  # (logp, no aux)
+        rbf(bandwidth=length_scale**0.5), optimizer,
     )
     mj_step = jax.jit(lambda s: mj_raw(s, None)[0])
     mj_state = init(particles, optimizer)

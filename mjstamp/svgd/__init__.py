@@ -24,8 +24,11 @@ depends on particle i only), called once per step on the whole batch:
 `feature_kernel()` (no feature_fn) takes w from the log density and puts an RBF
 with a median bandwidth per block over [θ, w(θ)] (App. B-C); log ρ, w and all
 their per-particle Jacobians come from that one batched call. Without features,
-return log ρ alone, (n,), and use any kernel (default `rbf()`). See
-`mjstamp.svgd.steps` for the contract and `run_stamp` for the loop.
+return (log ρ, an (n, 0) array) and use any kernel (default `rbf()`): one
+signature, `logdensity(θ) -> (logp, aux)`, as `jax.value_and_grad(has_aux=True)`
+reads it. See
+`mjstamp.svgd.steps` for the contract, `run_stamp` for the loop and
+`mjstamp.svgd.guards` for the pure guards around its steps (backtracking, re-draws).
 
 References:
   STAMP §III-A, §IV-A/B, Algorithm 1, App. B-C, App. C-B.
@@ -48,7 +51,6 @@ from mjstamp.svgd.kernels import (
 from mjstamp.svgd.stamp import (
     PHASE_SGD,
     PHASE_SVGD,
-    IterationRecord,
     LoopSnapshot,
     StampConfig,
     StampDiagnostics,
@@ -78,7 +80,6 @@ __all__ = [
     "NEAR_ZERO_RTOL",
     "PHASE_SGD",
     "PHASE_SVGD",
-    "IterationRecord",
     "LoopSnapshot",
     "StampConfig",
     "StampDiagnostics",

@@ -25,8 +25,10 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from mjstamp.svgd import guards
 from mjstamp.svgd._checks import check_particles
 from mjstamp.svgd._jacobian import JacobianMode, check_mode
+from mjstamp.svgd.guards import PHASE_SGD, PHASE_SVGD
 from mjstamp.svgd.kernels import Kernel
 from mjstamp.svgd.steps import (
     LogDensityFn,
@@ -44,7 +46,6 @@ from mjstamp.svgd.steps import (
 __all__ = [
     "PHASE_SGD",
     "PHASE_SVGD",
-    "IterationRecord",
     "LoopSnapshot",
     "StampConfig",
     "StampDiagnostics",
@@ -53,8 +54,6 @@ __all__ = [
     "run_stamp",
 ]
 
-PHASE_SVGD = 0
-PHASE_SGD = 1
 
 Schedule = Callable[[jax.Array], jax.Array]
 
@@ -321,38 +320,6 @@ def _default_optimizer(learning_rate) -> optax.GradientTransformation:
     return optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate)
 
 
-class IterationRecord(NamedTuple):
-    """One iteration of a run, fetched to the host: a row of `StampDiagnostics`.
-
-    A pytree (NamedTuple) built from the step's `StepInfo`; `run_stamp`
-    collects one per iteration and stacks them field by field. Fields are named
-    and mean what they do in `StampDiagnostics`, at a single iteration.
-    """
-
-    logdensity_mean: Any
-    logdensity_max: Any
-    bandwidth: Any
-    phase: Any
-    learning_rate: Any
-    displacement: Any
-    nonfinite_particles: Any
-    step_seconds: Any
-    driving_norm_mean: Any
-    driving_norm_median: Any
-    repulsion_norm_mean: Any
-    repulsion_norm_median: Any
-    score_norm_median: Any
-    direction_norm_mean: Any
-    displacement_per_coordinate: Any
-    near_zero_share: Any
-    near_zero_threshold: Any
-    self_weight_median: Any
-    rescued: Any
-    nonfinite_redrawn: Any
-    backtracked: Any
-    step_scale_median: Any
-
-
 class LoopSnapshot(NamedTuple):
     """Everything `run_stamp` needs to continue a run after an iteration (host values).
 
@@ -368,11 +335,13 @@ class LoopSnapshot(NamedTuple):
       opt_leaves: the leaves of that phase's optimizer state
         (`jax.tree.leaves`), in order; the tree comes from `init`.
       key_data: `jax.random.key_data` of the loop's PRNG key.
-      rows: the `IterationRecord` of every iteration so far, both phases.
+      rows: the `StampDiagnostics` row of every iteration so far, both phases
+        (each field that iteration's value).
       svgd_particles: (n, d) particles at the end of SVGD; None in SVGD.
       svgd_converged: whether SVGD ended by the convergence test; None in SVGD.
       counters: the re-draw counters ({"stalled", "rescued", "failing",
-        "nonfinite_redrawn"}: (n,) ints each) and the backtracking state
+        "nonfinite_redrawn"}: (n,) ints each, and "fresh": the indices re-drawn
+        by the last re-draw, absent in older snapshots) and the backtracking state
         ({"guard_theta": (n, d) last accepted particles, "guard_logp": (n,)
         their log densities (NaN: none yet), "guard_scale": (n,) step scales}).
     """
@@ -388,14 +357,14 @@ class LoopSnapshot(NamedTuple):
     counters: dict
 
 
-# N.B. over 80 lines: 36 of them the docstring; the loop itself is `_Loop`.
+# N.B. over 80 lines: 50 of them the docstring, 16 the signature; the loop itself is `_Loop`.
 def run_stamp(
     logdensity_fn: LogDensityFn,
     initial_particles: jax.Array | Callable[[jax.Array], jax.Array],
     kernel: Kernel | None = None,
     config: StampConfig = StampConfig(),
     *,
-    log_target_fn: Callable[[jax.Array], jax.Array] | None = None,
+    log_target_fn: LogDensityFn | None = None,
     sgd_logdensity_fn: LogDensityFn | None = None,
     svgd_optimizer: optax.GradientTransformation | None = None,
     sgd_optimizer: optax.GradientTransformation | None = None,
@@ -408,15 +377,16 @@ def run_stamp(
     """Runs STAMP: (discrete) SVGD until converged, then SGD until converged.
 
     Args:
-      logdensity_fn: batched log posterior log ρ(θ | O = 1), (n, d) -> (n,), or
-        (n, d) -> (logp (n,), features (n, f)) for a `feature_kernel()` that
-        reads the features of the same rollout (see `mjstamp.svgd.steps`).
+      logdensity_fn: batched log posterior log ρ(θ | O = 1), (n, d) ->
+        (logp (n,), aux (n, f)): aux the features of the same rollout for a
+        `feature_kernel()` that reads them, else an (n, 0) array (see
+        `mjstamp.svgd.steps`).
       initial_particles: (n, d) array with n >= 2, or a function of a PRNG key
         returning one (called with a key derived from config.seed).
       kernel: SVGD kernel; None for `rbf()` with the median heuristic.
       config: `StampConfig`.
-      log_target_fn: batched log p(Γ(θ)), the target at the hard decode; when
-        given the SVGD phase is discrete SVGD, eq. (4).
+      log_target_fn: batched (n, d) -> (log p(Γ(θ)) (n,), aux), the target at
+        the hard decode; when given the SVGD phase is discrete SVGD, eq. (4).
       sgd_logdensity_fn: the log density the SGD phase ascends; default
         logdensity_fn. A discrete task passes the target at the hard decode
         here, so refinement optimises the plan that will be executed.
@@ -471,40 +441,26 @@ def run_stamp(
     )  # fmt: skip
     tty = sys.stderr.isatty()
     show = tty if progress is None else bool(progress)
-    loop = _Loop(key, config, jit, n=particles.shape[0], show=show,
+    loop = _Loop(config, jit, n=particles.shape[0], show=show,
                  lines=progress is None and not tty, redraw=redraw, checkpoint=checkpoint)
+    carry = _Carry.init(key, particles.shape[0], backtrack=config.backtrack)
     if resume is not None:
-        loop.restore(resume, particles.shape)
-    resumed_sgd = resume is not None and resume.phase == PHASE_SGD
+        carry = loop.restore(resume, particles.shape, carry)
     with loop.bar:  # closed on the way out, also when a phase raises
-        if resumed_sgd:
-            svgd = SVGDState(jnp.asarray(resume.svgd_particles), None)
-            svgd_converged = bool(resume.svgd_converged)
-            svgd_iters = int(np.sum([r.phase == PHASE_SVGD for r in loop.rows]))
-        else:
-            svgd, svgd_converged = loop.run_phase(
-                PHASE_SVGD, svgd_step, init(particles, svgd_optimizer), config.svgd_max_iters,
-                resume=resume,
-            )
-            svgd_iters = len(loop.rows)
-            if loop.guard is not None and svgd_iters:
-                # The last update was never scored: SVGD ends at the points it accepted.
-                svgd = svgd._replace(particles=loop.guard.best(svgd.particles))
-        loop.svgd_end = (np.asarray(svgd.particles), svgd_converged)
-        loop.bar.total = svgd_iters + config.sgd_max_iters
-        loop.bar.refresh()
-        state, sgd_converged = loop.run_phase(
-            PHASE_SGD, sgd_step, init(svgd.particles, sgd_optimizer), config.sgd_max_iters,
-            resume=resume if resumed_sgd else None,
+        svgd, carry = loop.run_svgd(svgd_step, init(particles, svgd_optimizer), carry, resume)
+        svgd_iters = sum(int(r.phase) == PHASE_SVGD for r in carry.rows)
+        state, carry, sgd_converged = loop.run_phase(
+            PHASE_SGD, sgd_step, init(svgd.particles, sgd_optimizer), carry,
+            resume=resume if resume is not None and resume.phase == PHASE_SGD else None,
         )
-        if loop.guard is not None and len(loop.rows) > svgd_iters:
-            state = state._replace(particles=loop.guard.best(state.particles))
+        if len(carry.rows) > svgd_iters:
+            state = state._replace(particles=_best(state.particles, carry.backtrack))
     return StampResult(
         particles=state.particles, svgd_particles=svgd.particles,
-        diagnostics=_assemble(loop.rows, particles.shape[1]), svgd_iters=svgd_iters,
-        sgd_iters=len(loop.rows) - svgd_iters,
-        svgd_converged=svgd_converged, sgd_converged=sgd_converged,
-        rescued=loop.rescue.counts, nonfinite_redrawn=loop.rescue.nonfinite_counts,
+        diagnostics=_stack_records(carry.rows, particles.shape[1]), svgd_iters=svgd_iters,
+        sgd_iters=len(carry.rows) - svgd_iters,
+        svgd_converged=carry.svgd_end[1], sgd_converged=sgd_converged,
+        rescued=carry.rescue.rescued, nonfinite_redrawn=carry.rescue.nonfinite_redrawn,
     )  # fmt: skip
 
 
@@ -538,19 +494,49 @@ def _phase_steps(
     return (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer)
 
 
+class _Carry(NamedTuple):
+    """What the loop carries from one iteration to the next, across both phases.
+
+    Attributes:
+      key: the loop's PRNG key (every key a step or a re-draw gets comes from it).
+      rows: the `StampDiagnostics` row of every iteration so far, both phases.
+      rescue: the re-draw counters (`guards.RescueState`).
+      backtrack: `guards.BacktrackState` of the phase, or None (backtrack off).
+      svgd_end: (particles (n, d) host array, converged) once SVGD is over.
+    """
+
+    key: jax.Array
+    rows: tuple
+    rescue: guards.RescueState
+    backtrack: guards.BacktrackState | None
+    svgd_end: tuple = (None, None)
+
+    @classmethod
+    def init(cls, key: jax.Array, n: int, *, backtrack: bool) -> _Carry:
+        return cls(key, (), guards.rescue_init(n),
+                   guards.backtrack_init(n) if backtrack else None)
+
+    def split(self) -> tuple[_Carry, jax.Array]:
+        """(carry with the key moved on, a fresh subkey)."""
+        key, sub = jax.random.split(self.key)
+        return self._replace(key=key), sub
+
+
 class _Loop:
-    """The Python loop of `run_stamp`: one PRNG key and one list of records across phases."""
+    """The Python loop of `run_stamp`: what stays fixed over a run (settings, compiled steps).
+
+    What changes from one iteration to the next is a `_Carry`, passed in and
+    returned; the particles and optimizer state are the step's `SVGDState`.
+    """
 
     def __init__(
-        self, key: jax.Array, config: StampConfig, jit, *, n: int, show: bool, lines: bool,
+        self, config: StampConfig, jit, *, n: int, show: bool, lines: bool,
         redraw=None, checkpoint=None,
     ):
-        self.key = key
         self.checkpoint = checkpoint
-        self.svgd_end = (None, None)  # (particles, converged) once SVGD is over
-        self.rescue = _Rescue(config.rescue_window, redraw, n,
-                              nonfinite_window=config.nonfinite_redraw)
-        self.guard = _Backtrack(n) if config.backtrack else None
+        self.redraw = redraw
+        # N.B. without a source of fresh particles a non-finite one just stays frozen.
+        self.nonfinite_window = config.nonfinite_redraw if redraw is not None else 0
         self.config = config
         self.jit = jit
         self.n = n
@@ -565,10 +551,9 @@ class _Loop:
             unit="it",
             disable=not show,
         )
-        self.rows: list[IterationRecord] = []
         self.evaluations: dict[int, tuple] = {}  # id(step.evaluate) -> (it, compiled)
 
-    def _compile(self, step, fresh_state: SVGDState, name: str):
+    def _compile(self, step, fresh_state: SVGDState, name: str, key: jax.Array):
         """The phase's step, compiled as its two halves (`mjstamp.svgd.steps`).
 
         The evaluation (the rollouts) is compiled once per `step.evaluate` and
@@ -578,12 +563,13 @@ class _Loop:
         """
         jit = self.jit or (lambda fn, _name, *_example: jax.jit(fn))
         x0 = fresh_state.particles
-        key = id(step.evaluate)
-        if key not in self.evaluations:  # N.B. the function is kept: its id stays its own
-            self.evaluations[key] = (step.evaluate, jit(step.evaluate, f"{name}-evaluate", x0))
-        evaluate = self.evaluations[key][1]
+        ev_key = id(step.evaluate)
+        if ev_key not in self.evaluations:  # N.B. the function is kept: its id stays its own
+            self.evaluations[ev_key] = (step.evaluate,
+                                        jit(step.evaluate, f"{name}-evaluate", x0))
+        evaluate = self.evaluations[ev_key][1]
         first = {"particles": x0, "evaluation": evaluate(x0)}
-        update = jit(step.update, f"{name}-update", fresh_state, first["evaluation"], self.key)
+        update = jit(step.update, f"{name}-update", fresh_state, first["evaluation"], key)
 
         def compiled(state: SVGDState, key: jax.Array):
             if first and state.particles is first.pop("particles"):
@@ -595,135 +581,183 @@ class _Loop:
 
         return compiled
 
-    def snapshot(self, phase: int, t: int, state) -> LoopSnapshot:
+    def snapshot(self, phase: int, t: int, state, carry: _Carry) -> LoopSnapshot:
         """The `LoopSnapshot` after iteration t of `phase` (fetches the state to the host)."""
         particles, leaves, key_data = fetch(
-            (state.particles, jax.tree.leaves(state.opt_state), jax.random.key_data(self.key))
+            (state.particles, jax.tree.leaves(state.opt_state), jax.random.key_data(carry.key))
         )
-        r = self.rescue
         return LoopSnapshot(
             phase=phase, iteration=t, particles=np.asarray(particles),
             opt_leaves=[np.asarray(leaf) for leaf in leaves], key_data=np.asarray(key_data),
-            rows=list(self.rows), svgd_particles=self.svgd_end[0],
-            svgd_converged=self.svgd_end[1],
-            counters={"stalled": r.stalled.copy(), "rescued": r.counts.copy(),
-                      "failing": r.failing.copy(), "nonfinite_redrawn": r.nonfinite_counts.copy(),
-                      **(self.guard.counters() if self.guard is not None else {})},
+            rows=list(carry.rows), svgd_particles=carry.svgd_end[0],
+            svgd_converged=carry.svgd_end[1], counters=_counters(carry),
         )
 
-    def restore(self, snap: LoopSnapshot, shape: tuple[int, int]) -> None:
-        """Takes the key, records and counters of a snapshot (its state: `run_phase`)."""
+    def restore(self, snap: LoopSnapshot, shape: tuple[int, int], carry: _Carry) -> _Carry:
+        """The carry of a snapshot: its key, records and counters (its state: `run_phase`)."""
         if not isinstance(snap, LoopSnapshot):
             raise ValueError(f"resume must be a LoopSnapshot; got {type(snap).__name__}")
         if snap.phase not in (PHASE_SVGD, PHASE_SGD) or np.shape(snap.particles) != shape:
             raise ValueError(f"resume: a snapshot of phase {snap.phase} with particles "
                              f"{np.shape(snap.particles)} cannot continue a run of {shape}")
-        self.key = jax.random.wrap_key_data(jnp.asarray(snap.key_data))
-        self.rows = list(snap.rows)
-        r = self.rescue
-        r.stalled, r.counts = (np.array(snap.counters[k]) for k in ("stalled", "rescued"))
-        r.failing = np.array(snap.counters["failing"])
-        r.nonfinite_counts = np.array(snap.counters["nonfinite_redrawn"])
-        if self.guard is not None:
-            self.guard.restore(snap.counters)
-        self.bar.update(len(self.rows))
+        self.bar.update(len(snap.rows))
+        c = snap.counters
+        rescue = guards.RescueState(
+            *(np.array(c[k]) for k in ("stalled", "rescued", "failing", "nonfinite_redrawn")),
+            fresh=np.array(c.get("fresh", guards.RescueState._field_defaults["fresh"]), int))
+        backtrack = None if carry.backtrack is None else _backtrack_from(c, shape[0])
+        return carry._replace(
+            key=jax.random.wrap_key_data(jnp.asarray(snap.key_data)), rows=tuple(snap.rows),
+            rescue=rescue, backtrack=backtrack)
 
-    def _split(self) -> jax.Array:
-        """A fresh subkey; the loop's key moves on."""
-        self.key, sub = jax.random.split(self.key)
-        return sub
+    def run_svgd(self, step, state, carry: _Carry, resume) -> tuple[SVGDState, _Carry]:
+        """(SVGD's last state, carry with `svgd_end` set): the SVGD phase, or a snapshot's."""
+        if resume is not None and resume.phase == PHASE_SGD:
+            svgd = SVGDState(jnp.asarray(resume.svgd_particles), None)
+            converged = bool(resume.svgd_converged)
+        else:
+            svgd, carry, converged = self.run_phase(PHASE_SVGD, step, state, carry,
+                                                    resume=resume)
+            if carry.rows:
+                # The last update was never scored: SVGD ends at the points it accepted.
+                svgd = svgd._replace(particles=_best(svgd.particles, carry.backtrack))
+        svgd_iters = sum(int(r.phase) == PHASE_SVGD for r in carry.rows)
+        self.bar.total = svgd_iters + self.config.sgd_max_iters
+        self.bar.refresh()
+        return svgd, carry._replace(svgd_end=(np.asarray(svgd.particles), converged))
 
-    def run_phase(self, phase: int, step, state, max_iters: int, *, resume=None):
-        """Runs `step` until the convergence test passes or `max_iters`; (state, converged).
+    def run_phase(self, phase: int, step, state, carry: _Carry, *, resume=None):
+        """Runs `step` until the convergence test passes or the cap; (state, carry, converged).
 
         With `resume` (a `LoopSnapshot` of this phase), continues after its
         iteration from its particles and optimizer state.
         """
+        max_iters = self.config.svgd_max_iters if phase == PHASE_SVGD else \
+            self.config.sgd_max_iters
         if max_iters == 0:  # nothing to run: compile nothing either
-            return state, False
+            return state, carry, False
         name = "svgd" if phase == PHASE_SVGD else "sgd"
-        fresh_state = state  # what the step is compiled for; a snapshot shares its shapes
-        done = [r for r in self.rows if r.phase == phase] if resume is not None else []
+        done = [r for r in carry.rows if r.phase == phase] if resume is not None else []
         means = [float(r.logdensity_mean) for r in done]
         moves = [float(r.displacement) for r in done]
-        # Near-zero score norm, fixed at the phase's first iteration.
-        threshold = float(done[0].near_zero_threshold) if done else None
+        fresh_state = state  # what the step is compiled for; a snapshot shares its shapes
         if resume is not None:
-            leaves, tree = jax.tree.flatten(state.opt_state)
-            if len(leaves) != len(resume.opt_leaves):
-                raise ValueError(f"resume: {len(resume.opt_leaves)} optimizer-state leaves, "
-                                 f"this run's optimizer has {len(leaves)}")
-            opt_state = jax.tree.unflatten(tree, [
-                jnp.asarray(v, dtype=leaf.dtype) for v, leaf in zip(resume.opt_leaves, leaves,
-                                                                     strict=True)])
-            state = state._replace(particles=jnp.asarray(resume.particles, state.particles.dtype),
-                                   opt_state=opt_state)
+            state = _resumed(state, resume)
             self.say(f"{name.upper()}: resumed after iteration {resume.iteration}")
             if self._converged(means, moves):  # the order of the loop's own exits
-                return state, True
+                return state, carry, True
             if resume.iteration >= max_iters:
-                return state, False
+                return state, carry, False
         self.say(f"{name.upper()}: compiling its step (or loading it from the caches)")
-        step = self._compile(step, fresh_state, name)
-        if self.guard is not None and not done:
-            self.guard.reset()  # a new phase: a new objective, a new optimizer
-        every = max(1, max_iters // 10)
+        step = self._compile(step, fresh_state, name, carry.key)
+        if carry.backtrack is not None and not done:
+            # a new phase: a new objective, a new optimizer
+            carry = carry._replace(backtrack=guards.backtrack_init(self.n))
+        # Near-zero score norm, fixed at the phase's first iteration.
+        threshold = float(done[0].near_zero_threshold) if done else None
         for t in range(len(done) + 1, max_iters + 1):
-            started = time.perf_counter()
-            self.key, sub = jax.random.split(self.key)
-            before = state
-            state, info = step(state, sub)
-            row, score_norm = _fetch(info, phase)
-            if self.guard is not None:
-                state, k, moved = self.guard(before, state, info, phase)
-                row = row._replace(backtracked=k,
-                                   step_scale_median=float(np.median(self.guard.scale)))
-                if moved is not None:  # the steps taken, not the optimizer's updates
-                    row = row._replace(displacement=float(np.mean(np.linalg.norm(moved, axis=1))),
-                                       displacement_per_coordinate=np.mean(np.abs(moved), 0))
-            row = row._replace(step_seconds=time.perf_counter() - started)
-            if threshold is None:
-                threshold = float(near_zero_threshold(score_norm, xp=np))
-            row = row._replace(
-                near_zero_share=float(near_zero_share(score_norm, threshold, xp=np)),
-                near_zero_threshold=threshold,
-            )
-            if phase == PHASE_SVGD and self.rescue.window:
-                self.key, sub = jax.random.split(self.key)
-                state, k = self.rescue(state, info, score_norm, threshold, sub)
-                row = row._replace(rescued=k)
-                if k:
-                    self.say(f"{name.upper()} {t}: {k} stalled particles re-drawn")
-            if self.rescue.nonfinite_window:
-                state, k = self.rescue.nonfinite(state, score_norm, self._split)
-                row = row._replace(nonfinite_redrawn=k)
-                if k:
-                    self.say(f"{name.upper()} {t}: {k} particles non-finite "
-                             f"{self.rescue.nonfinite_window} iterations in a row re-drawn")
-            if self.guard is not None and self.rescue.redrawn and phase == PHASE_SVGD:
-                # N.B. in SGD the best point a particle visited stays its best: the
-                # fresh particle's points compete with it.
-                self.guard.forget(np.concatenate(self.rescue.redrawn))
-            self.rescue.redrawn = []
-            if not self.rows and int(row.nonfinite_particles) == self.n:
-                raise ValueError(
-                    f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {self.n} "
-                    "initial particles; it must be finite for at least one"
-                )
-            self.rows.append(row)
+            state, carry, row = self._iterate(phase, t, step, state, carry, threshold)
+            threshold = float(row.near_zero_threshold)
             means.append(float(row.logdensity_mean))
             moves.append(float(row.displacement))
-            self.bar.update(1)
-            if t % 10 == 1:
-                self.bar.set_postfix(phase=name.upper(), logp=f"{means[-1]:.4g}")
-            if t == 1 or t % every == 0 or t == max_iters:
-                self.say(f"{name.upper()} {t}/{max_iters}: mean log density {means[-1]:.4g}, "
-                         f"{row.step_seconds:.2f} s/it")
+            self._report(phase, t, max_iters, means[-1], row)
             if self.checkpoint is not None:
-                self.checkpoint(lambda t=t, state=state: self.snapshot(phase, t, state))
+                self.checkpoint(lambda t=t, state=state, carry=carry:
+                                self.snapshot(phase, t, state, carry))
             if self._converged(means, moves):
-                return state, True
-        return state, False
+                return state, carry, True
+        return state, carry, False
+
+    def _iterate(self, phase: int, t: int, step, state: SVGDState, carry: _Carry, threshold):
+        """(state, carry, row) after one iteration: the step, then the guards around it."""
+        started = time.perf_counter()
+        carry, sub = carry.split()
+        after, info = step(state, sub)
+        row, score_norm = _fetch(info, phase)
+        host, backed, carry, row = self._backtrack(phase, state, after, info, carry, row)
+        row = row._replace(step_seconds=time.perf_counter() - started)
+        if threshold is None:
+            threshold = float(near_zero_threshold(score_norm, xp=np))
+        row = row._replace(
+            near_zero_share=float(near_zero_share(score_norm, threshold, xp=np)),
+            near_zero_threshold=threshold,
+        )
+        drawn, carry, row = self._redraws(phase, t, info, score_norm, threshold, after, carry,
+                                          row)
+        if drawn and carry.backtrack is not None and phase == PHASE_SVGD:
+            # N.B. in SGD the best point a particle visited stays its best: the
+            # fresh particle's points compete with it.
+            carry = carry._replace(backtrack=guards.backtrack_forget(
+                np.concatenate([idx for idx, _ in drawn]), carry.backtrack))
+        if not carry.rows and int(row.nonfinite_particles) == self.n:
+            raise ValueError(
+                f"logdensity_fn returned NaN/inf (or a NaN gradient) for all {self.n} "
+                "initial particles; it must be finite for at least one"
+            )
+        after = _edited(after, host, backed, drawn)
+        return after, carry._replace(rows=(*carry.rows, row)), row
+
+    def _backtrack(self, phase, before: SVGDState, after: SVGDState, info: StepInfo,
+                   carry: _Carry, row):
+        """(particles after it on the host or None, rows taken back, carry, row): the guard."""
+        if carry.backtrack is None:
+            return None, _NO_ROWS, carry, row
+        logp = np.asarray(fetch(info.guard_logdensity), dtype=float)
+        theta_t = np.asarray(fetch(before.particles), dtype=float)
+        decision, guard = guards.backtrack_update(theta_t, logp, phase, carry.backtrack)
+        row = row._replace(backtracked=int(decision.back.size),
+                           step_scale_median=float(np.median(guard.scale)))
+        host = None
+        if decision.edits:  # the steps taken, not the optimizer's updates
+            host = guards.backtrack_apply(fetch(after.particles), theta_t, decision, guard)
+            moved = host.astype(float) - theta_t
+            row = row._replace(displacement=float(np.mean(np.linalg.norm(moved, axis=1))),
+                               displacement_per_coordinate=np.mean(np.abs(moved), 0))
+        return host, decision.back, carry._replace(backtrack=guard), row
+
+    def _redraws(self, phase, t, info: StepInfo, score_norm, threshold, after, carry, row):
+        """([(indices, fresh rows)], carry, row): the stall rescue, then the non-finite re-draw."""
+        name, drawn = ("SVGD" if phase == PHASE_SVGD else "SGD"), []
+        if phase == PHASE_SVGD and self.config.rescue_window:
+            carry, sub = carry.split()
+            logp = np.asarray(fetch(info.logdensity), dtype=float)
+            idx, rescue = guards.stall_update(logp, score_norm, threshold,
+                                              self.config.rescue_window, carry.rescue)
+            carry, row = carry._replace(rescue=rescue), row._replace(rescued=int(idx.size))
+            if idx.size:
+                drawn.append((idx, self._draw(sub, idx.size, after.particles)))
+                self.say(f"{name} {t}: {idx.size} stalled particles re-drawn")
+        if self.nonfinite_window:
+            idx, rescue = guards.nonfinite_update(score_norm, self.nonfinite_window,
+                                                  carry.rescue)
+            carry = carry._replace(rescue=rescue)
+            row = row._replace(nonfinite_redrawn=int(idx.size))
+            if idx.size:
+                # N.B. a key only when some particle is re-drawn, so a run without
+                # one draws the same PRNG keys as before this check existed.
+                carry, sub = carry.split()
+                drawn.append((idx, self._draw(sub, idx.size, after.particles)))
+                self.say(f"{name} {t}: {idx.size} particles non-finite "
+                         f"{self.nonfinite_window} iterations in a row re-drawn")
+        return drawn, carry, row
+
+    def _draw(self, key: jax.Array, k: int, like: jax.Array) -> np.ndarray:
+        """(k, d) fresh particles from `redraw`, in the particles' dtype, on the host."""
+        fresh = jnp.asarray(self.redraw(key, k), like.dtype)
+        if fresh.shape != (k, like.shape[1]):
+            raise ValueError(f"redraw(key, {k}) returned shape {fresh.shape}; "
+                             f"expected ({k}, {like.shape[1]})")
+        return np.asarray(fresh)
+
+    def _report(self, phase: int, t: int, max_iters: int, mean: float, row) -> None:
+        """The progress bar, and a status line at the first, every tenth and the last."""
+        name = "SVGD" if phase == PHASE_SVGD else "SGD"
+        self.bar.update(1)
+        if t % 10 == 1:
+            self.bar.set_postfix(phase=name, logp=f"{mean:.4g}")
+        if t == 1 or t % max(1, max_iters // 10) == 0 or t == max_iters:
+            self.say(f"{name} {t}/{max_iters}: mean log density {mean:.4g}, "
+                     f"{row.step_seconds:.2f} s/it")
 
     def _converged(self, means, moves) -> bool:
         c = self.config
@@ -731,67 +765,76 @@ class _Loop:
                              motion_tol=c.motion_tol, min_iters=c.min_iters)
 
 
-class _Rescue:
-    """Re-draws particles: those stalled R iterations in a row, and those non-finite M in a row."""
+_NO_ROWS = np.zeros(0, dtype=int)
 
-    def __init__(self, window: int, redraw, n: int, *, nonfinite_window: int = 0):
-        self.window = window
-        self.redraw = redraw
-        # N.B. without a source of fresh particles a non-finite one just stays frozen.
-        self.nonfinite_window = nonfinite_window if redraw is not None else 0
-        self.stalled = np.zeros(n, dtype=int)
-        self.counts = np.zeros(n, dtype=int)
-        self.failing = np.zeros(n, dtype=int)
-        self.nonfinite_counts = np.zeros(n, dtype=int)
-        self.fresh = np.zeros(0, dtype=int)  # re-drawn this iteration, not yet scored
-        self.redrawn: list[np.ndarray] = []  # indices re-drawn this iteration (the loop clears)
 
-    def __call__(self, state, info: StepInfo, score_norm, threshold: float, key):
-        """(state with the particles stalled `window` times re-drawn, how many)."""
-        logp = np.asarray(fetch(info.logdensity), dtype=float)
-        finite = np.isfinite(logp)
-        median = float(np.median(logp[finite])) if finite.any() else math.inf
-        flat = ~(score_norm > threshold)  # NaN counts as no gradient
-        low = ~(logp > median)
-        self.stalled = np.where(flat & low, self.stalled + 1, 0)
-        idx = np.flatnonzero(self.stalled >= self.window)
-        if idx.size == 0:
-            return state, 0
-        state = self._redraw(state, idx, key)
-        self.counts[idx] += 1
-        return state, int(idx.size)
+def _resumed(state: SVGDState, resume: LoopSnapshot) -> SVGDState:
+    """`state` (a phase's fresh one) with a snapshot's particles and optimizer state."""
+    leaves, tree = jax.tree.flatten(state.opt_state)
+    if len(leaves) != len(resume.opt_leaves):
+        raise ValueError(f"resume: {len(resume.opt_leaves)} optimizer-state leaves, "
+                         f"this run's optimizer has {len(leaves)}")
+    opt_state = jax.tree.unflatten(tree, [
+        jnp.asarray(v, dtype=leaf.dtype)
+        for v, leaf in zip(resume.opt_leaves, leaves, strict=True)])
+    return state._replace(particles=jnp.asarray(resume.particles, state.particles.dtype),
+                          opt_state=opt_state)
 
-    def nonfinite(self, state, score_norm, new_key):
-        """(state with the particles non-finite `nonfinite_window` times in a row re-drawn, k).
 
-        `new_key()` is called only when some particle is re-drawn, so a run without
-        one draws the same PRNG keys as before this check existed.
-        """
-        self.failing = np.where(np.isnan(score_norm), self.failing + 1, 0)
-        self.failing[self.fresh] = 0  # re-drawn by the stall rescue this iteration
-        self.fresh = np.zeros(0, dtype=int)
-        idx = np.flatnonzero(self.failing >= self.nonfinite_window)
-        if idx.size == 0:
-            return state, 0
-        state = self._redraw(state, idx, new_key())
-        self.nonfinite_counts[idx] += 1
-        return state, int(idx.size)
+def _edited(after: SVGDState, host, backed: np.ndarray, drawn: list) -> SVGDState:
+    """The step's state with the guards' decisions applied, the particles put back once.
 
-    def _redraw(self, state, idx: np.ndarray, key):
-        """State with particles `idx` drawn afresh, their Adam moments zeroed, counters reset."""
-        particles = state.particles
-        fresh = jnp.asarray(self.redraw(key, int(idx.size)), particles.dtype)
-        if fresh.shape != (idx.size, particles.shape[1]):
-            raise ValueError(f"redraw(key, {idx.size}) returned shape {fresh.shape}; "
-                             f"expected ({idx.size}, {particles.shape[1]})")
-
-        self.stalled[idx] = 0
-        self.failing[idx] = 0
-        self.fresh = idx
-        self.redrawn.append(idx)
+    host: (n, d) particles after backtracking, or None where it changed none;
+    backed: rows taken back (their optimizer's first moment zeroed); drawn:
+    [(rows, fresh particles)] re-drawn, in order (every moment of theirs zeroed).
+    """
+    if host is None and not drawn:
+        return after
+    if host is None:
+        host = np.array(fetch(after.particles))
+    for idx, rows in drawn:
+        host[idx] = rows  # N.B. `host` is this function's own copy
+    opt_state = after.opt_state
+    if backed.size:
+        opt_state = _zero_rows(opt_state, backed, host.shape, first_moment_only=True)
+    if drawn:
         # Adam's moments of a re-drawn particle start from zero.
-        return state._replace(particles=_set_rows(particles, idx, np.asarray(fresh)),
-                              opt_state=_zero_rows(state.opt_state, idx, particles.shape))
+        opt_state = _zero_rows(opt_state, np.concatenate([idx for idx, _ in drawn]), host.shape)
+    return after._replace(particles=_put(host, after.particles), opt_state=opt_state)
+
+
+def _best(particles: jax.Array, guard: guards.BacktrackState | None) -> jax.Array:
+    """`particles` with each one backtracking has a scored point for replaced by that point."""
+    if guard is None:
+        return particles
+    rows, theta = guards.backtrack_best(guard)
+    return _set_rows(particles, rows, theta) if rows.size else particles
+
+
+def _counters(carry: _Carry) -> dict:
+    """A snapshot's counters: the re-draw counters and the backtracking state."""
+    r = carry.rescue
+    counters = {"stalled": r.stalled, "rescued": r.rescued, "failing": r.failing,
+                "nonfinite_redrawn": r.nonfinite_redrawn, "fresh": r.fresh}
+    g = carry.backtrack
+    if g is not None:
+        theta = np.full((r.stalled.size, 0), np.nan) if g.theta is None else g.theta
+        counters.update(guard_theta=theta, guard_logp=g.logp, guard_peak=g.peak,
+                        guard_scale=g.scale)
+    # N.B. copies: a snapshot kept by the caller must not share arrays with the run
+    return {k: np.array(v) for k, v in counters.items()}
+
+
+def _backtrack_from(counters: dict, n: int) -> guards.BacktrackState:
+    """The backtracking state of a snapshot's counters (a fresh one if it has none)."""
+    if "guard_scale" not in counters:
+        return guards.backtrack_init(n)
+    theta = np.array(counters["guard_theta"], dtype=float)
+    logp = np.array(counters["guard_logp"], dtype=float)
+    return guards.BacktrackState(
+        theta=theta if theta.size else None, logp=logp,
+        peak=np.array(counters.get("guard_peak", logp), dtype=float),
+        scale=np.array(counters["guard_scale"], dtype=float))
 
 
 def _set_rows(array: jax.Array, idx: np.ndarray, rows) -> jax.Array:
@@ -836,122 +879,6 @@ def _zero_rows(opt_state, idx: np.ndarray, shape: tuple, *, first_moment_only: b
     return jax.tree.map(reset, opt_state)
 
 
-class _Backtrack:
-    """SVGD: takes back steps that lowered a particle's log density; SGD: keeps its best.
-
-    (`StampConfig.backtrack`.)
-
-    The log density guarded is the step's `guard_logdensity`: in discrete SVGD
-    the target at the decoded plan, log p(Γ(θ)), so a step of the relaxed
-    surrogate that makes the plan itself worse is taken back.
-
-    The step reports log ρ at the particles it started from, so a step's
-    outcome is known one iteration later: at iteration t, log ρ(θ_t) is
-    compared with the highest log ρ the particle has held in the phase (its
-    peak; comparing with the last accepted point instead would let small
-    falls add up without bound). Where it fell, the particle goes back to
-    its last accepted point (the update just computed from θ_t
-    is dropped), its scale halves and its optimizer rows are zeroed; where it
-    did not, θ_t is accepted and the update from it is scaled. Particles whose
-    log density is not finite are left to the non-finite handling.
-    """
-
-    MIN_SCALE = 2.0 ** -10
-    GROW = 1.25
-
-    def __init__(self, n: int):
-        self.n = n
-        self.reset()
-
-    def reset(self) -> None:
-        """Forgets every accepted point; scales back to 1 (a new phase)."""
-        self.theta = None  # (n, d) host array once the first iteration is seen
-        self.logp = np.full(self.n, np.nan)
-        self.peak = np.full(self.n, np.nan)  # SVGD: the highest accepted log density
-        self.scale = np.ones(self.n)
-
-    def forget(self, idx: np.ndarray) -> None:
-        """Particles re-drawn: no accepted point, scale 1."""
-        self.logp[idx] = np.nan
-        self.peak[idx] = np.nan
-        self.scale[idx] = 1.0
-
-    def best(self, particles: jax.Array) -> jax.Array:
-        """`particles` with each one that has a scored point replaced by it.
-
-        In SGD the best point each particle visited; in SVGD its last accepted one.
-        """
-        rows = np.flatnonzero(np.isfinite(self.logp))
-        if self.theta is None or rows.size == 0:
-            return particles
-        return _set_rows(particles, rows, self.theta[rows])
-
-    def counters(self) -> dict:
-        theta = np.full((self.n, 0), np.nan) if self.theta is None else self.theta.copy()
-        return {"guard_theta": theta, "guard_logp": self.logp.copy(),
-                "guard_peak": self.peak.copy(), "guard_scale": self.scale.copy()}
-
-    def restore(self, counters: dict) -> None:
-        if "guard_scale" not in counters:
-            self.reset()
-            return
-        theta = np.array(counters["guard_theta"], dtype=float)
-        self.theta = theta if theta.size else None
-        self.logp = np.array(counters["guard_logp"], dtype=float)
-        self.peak = np.array(counters.get("guard_peak", self.logp), dtype=float)
-        self.scale = np.array(counters["guard_scale"], dtype=float)
-
-    def __call__(self, before, after, info: StepInfo, phase: int):
-        """(state after the guard, particles taken back, (n, d) steps or None if unchanged).
-
-        `before` stepped to `after`. In SVGD a fall counts beyond max(1, d/2)
-        nats below the particle's peak, the depth of a d-dimensional
-        Gaussian's typical set below its mode, so the repulsion may still
-        spread particles over a mode but not throw them out of it. In SGD
-        nothing is taken back; the best point each particle visits is kept
-        for `best`.
-        """
-        logp = np.asarray(fetch(info.guard_logdensity), dtype=float)
-        theta_t = np.asarray(fetch(before.particles), dtype=float)
-        if self.theta is None:
-            self.theta = theta_t.copy()
-        finite = np.isfinite(logp)
-        if phase == PHASE_SGD:  # the best point each particle has visited; Adam runs free
-            better = finite & ~(logp <= self.logp)  # NaN: none yet
-            self.theta[better] = theta_t[better]
-            self.logp[better] = logp[better]
-            return after, 0, None
-        margin = max(1.0, theta_t.shape[1] / 2)
-        # N.B. a step into a region where log ρ is not finite is a fall too: the
-        # particle goes back to its last accepted point instead of freezing there.
-        # N.B. in SVGD peak >= logp wherever logp is finite: every accept raises
-        # it, and both are reset and forgotten together (SGD leaves peak alone).
-        fell = np.isfinite(self.logp) & (~finite | (logp < self.peak - margin))
-        accept = finite & ~fell
-        back = np.flatnonzero(fell)
-        self.scale[back] = np.maximum(self.scale[back] / 2, self.MIN_SCALE)
-        scaled = np.flatnonzero(accept & (self.scale < 1))
-        used = self.scale[scaled]  # the scale of the update just computed from θ_t
-        self.theta[accept] = theta_t[accept]
-        self.logp[accept] = logp[accept]
-        self.peak[accept] = np.fmax(self.peak[accept], logp[accept])
-        self.scale[accept] = np.minimum(self.scale[accept] * self.GROW, 1.0)
-        if back.size == 0 and scaled.size == 0:
-            return after, 0, None
-        host = np.array(fetch(after.particles))
-        if scaled.size:
-            start = theta_t[scaled].astype(host.dtype)
-            host[scaled] = start + used.astype(host.dtype)[:, None] * (host[scaled] - start)
-        opt_state = after.opt_state
-        if back.size:
-            host[back] = self.theta[back]
-            opt_state = _zero_rows(opt_state, back, host.shape, first_moment_only=True)
-        particles = _put(host, after.particles)
-        moved = host.astype(float) - theta_t
-        return (after._replace(particles=particles, opt_state=opt_state), int(back.size),
-                moved)
-
-
 def fetch(tree):
     """`jax.device_get` that also reads arrays spread over several processes' devices.
 
@@ -970,10 +897,10 @@ def fetch(tree):
     return jax.device_get(jax.tree.map(one, tree))
 
 
-_FROM_STEP = tuple(f for f in IterationRecord._fields if f in StepInfo._fields)
+_FROM_STEP = tuple(f for f in StampDiagnostics._fields if f in StepInfo._fields)
 
 
-def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
+def _fetch(info: StepInfo, phase: int) -> tuple[StampDiagnostics, np.ndarray]:
     """The iteration's record and its (n,) score norms, on the host (waits for the step).
 
     The record's step_seconds and near-zero fields are left for the loop to fill.
@@ -983,7 +910,7 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
     # N.B. the fields a StepInfo carries are copied by name; the rest the loop fills.
     copied = {name: getattr(info, name) for name in _FROM_STEP}
     record, score_norm = fetch((
-        IterationRecord(**{**dict.fromkeys(IterationRecord._fields), **copied})._replace(
+        StampDiagnostics(**{**dict.fromkeys(StampDiagnostics._fields), **copied})._replace(
             phase=phase, rescued=0, nonfinite_redrawn=0, backtracked=0,
             step_scale_median=1.0),
         info.score_norm,
@@ -993,30 +920,32 @@ def _fetch(info: StepInfo, phase: int) -> tuple[IterationRecord, np.ndarray]:
     return record._replace(score_norm_median=median), score_norm
 
 
-# dtype of each StampDiagnostics column; bandwidth is stacked apart (its width g may differ
-# between phases: SGD has none), and so is displacement_per_coordinate (its width is d).
+# dtype of each StampDiagnostics column; bandwidth's width g may differ between phases
+# (SGD has none): a row of another width is NaN.
 _COLUMN_DTYPES = {"phase": np.int8, "nonfinite_particles": int, "rescued": int,
                   "nonfinite_redrawn": int, "backtracked": int}
-_WIDE = ("bandwidth", "displacement_per_coordinate")
 
 
-def _assemble(rows: list[IterationRecord], dim: int) -> StampDiagnostics:
-    """Stacks the records field by field into `StampDiagnostics` (T rows, d = dim)."""
+def _stack_records(rows: Sequence[StampDiagnostics], dim: int) -> StampDiagnostics:
+    """The run's `StampDiagnostics`: its per-iteration rows stacked leaf by leaf (T rows).
+
+    Args:
+      rows: one `StampDiagnostics` per iteration, each field that iteration's
+        value (bandwidth (g,), displacement_per_coordinate (d,), the rest scalars).
+      dim: d, the width of displacement_per_coordinate when there are no rows.
+    """
     g = max((np.size(r.bandwidth) for r in rows), default=0)
 
-    def bandwidth(r):
-        b = np.asarray(r.bandwidth, dtype=float).ravel()
+    def bandwidth(b):
+        b = np.asarray(b, dtype=float).ravel()
         return b if b.size == g else np.full(g, np.nan)
 
-    columns = {
-        name: np.array([getattr(r, name) for r in rows], dtype=_COLUMN_DTYPES.get(name, float))
-        for name in IterationRecord._fields
-        if name not in _WIDE
-    }
-    bandwidths = np.array([bandwidth(r) for r in rows]).reshape(len(rows), g)
-    per_coordinate = np.array(
-        [r.displacement_per_coordinate for r in rows], dtype=float
-    ).reshape(len(rows), dim)
-    return StampDiagnostics(
-        bandwidth=bandwidths, displacement_per_coordinate=per_coordinate, **columns
-    )
+    if not rows:
+        return StampDiagnostics(**{f: np.zeros(0, _COLUMN_DTYPES.get(f, float))
+                                   for f in StampDiagnostics._fields})._replace(
+            bandwidth=np.zeros((0, 0)), displacement_per_coordinate=np.zeros((0, dim)))
+    rows = [r._replace(bandwidth=bandwidth(r.bandwidth)) for r in rows]
+    stacked = jax.tree.map(lambda *column: np.array(column), *rows)
+    return StampDiagnostics(**{f: np.asarray(v, dtype=_COLUMN_DTYPES.get(f, float))
+                               for f, v in stacked._asdict().items()})._replace(
+        bandwidth=np.asarray(stacked.bandwidth, dtype=float).reshape(len(rows), g))

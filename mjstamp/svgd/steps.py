@@ -8,15 +8,17 @@ schedules come free. SVGD *ascends* log ρ, optax *minimises*: the steps feed
 
 How a task plugs in
 -------------------
-The log density is *batched*: `logdensity_fn(particles (n, d)) -> (n,)`, with the
-rollouts vmapped inside, and *particle-separable* (row i depends on particle i
-only). Per step the engine calls it once on the whole batch and takes the n
-scores ∇ log ρ(θ_i) from one reverse pass; the kernel then costs one n×n matrix
-and its gradient. So a step is n rollouts, never n².
+The log density is *batched*, and has one signature, in the way
+`jax.value_and_grad(..., has_aux=True)` reads it:
+`logdensity_fn(particles (n, d)) -> (logp (n,), aux (n, f))`, with the rollouts
+vmapped inside, and *particle-separable* (row i depends on particle i only);
+aux are the kernel features of the same rollout, or an (n, 0) array where the
+kernel needs none. Per step the engine calls it once on the whole batch and
+takes the n scores ∇ log ρ(θ_i) from one reverse pass; the kernel then costs one
+n×n matrix and its gradient. So a step is n rollouts, never n².
 
 A task whose kernel needs features of the same rollout (billiards: the soft
-wall-hit indicators w(θ) of App. B-B) returns them alongside:
-`logdensity_fn(particles) -> (logp (n,), features (n, f))`, and uses
+wall-hit indicators w(θ) of App. B-B) returns them as aux and uses
 `feature_kernel()` (no feature_fn). The step then gets log ρ, the features and
 all per-particle Jacobians ∂[log ρ, φ]/∂θ from one batched forward pass plus
 either 1+f batched pullbacks or d batched pushforwards (`jacobian=`), still n
@@ -64,7 +66,8 @@ __all__ = [
     "near_zero_share",
 ]
 
-LogDensityFn = Callable[[jax.Array], Any]  # (n, d) -> (n,) or ((n,), (n, f))
+# (n, d) -> (logp (n,), aux (n, f)), aux an (n, 0) array where there is none
+LogDensityFn = Callable[[jax.Array], tuple[jax.Array, jax.Array]]
 
 # "Near zero" for a score: relative to the typical score of the particles that do feel a
 # gradient, so that it is free of the scale of θ and of log ρ; the absolute floor only
@@ -181,28 +184,24 @@ def init(particles: jax.Array, optimizer: optax.GradientTransformation) -> SVGDS
 # Evaluating the batched log density
 
 
-def _split_output(out: Any, n: int) -> tuple[jax.Array, jax.Array | None]:
-    """(logp (n,), features (n, f) or None) from what logdensity_fn returned."""
-    if isinstance(out, tuple):
-        if len(out) != 2:
-            raise ValueError(
-                "logdensity_fn must return logp (n,) or (logp (n,), features (n, f)); "
-                f"got a tuple of {len(out)}"
-            )
-        logp, feats = out
-        if feats.ndim != 2 or feats.shape[0] != n:
-            raise ValueError(
-                f"logdensity_fn features must have shape (n, f) with n={n}; "
-                f"got {feats.shape}"
-            )
-    else:
-        logp, feats = out, None
+def _split_output(out: Any, n: int, name: str = "logdensity_fn") -> tuple[jax.Array, jax.Array]:
+    """(logp (n,), aux (n, f)) from what a log density returned, its shapes checked."""
+    if not isinstance(out, tuple) or len(out) != 2:
+        got = f"a tuple of {len(out)}" if isinstance(out, tuple) else type(out).__name__
+        raise ValueError(
+            f"{name} must return (logp (n,), aux (n, f)), aux the kernel features of the "
+            f"same rollout or an (n, 0) array; got {got}"
+        )
+    logp, aux = out
+    if aux.ndim != 2 or aux.shape[0] != n:
+        raise ValueError(f"{name} aux (features) must have shape (n, f) with n={n}; "
+                         f"got {aux.shape}")
     if logp.shape != (n,):
         raise ValueError(
-            f"logdensity_fn must return log-densities of shape (n,) = ({n},) for "
+            f"{name} must return log-densities of shape (n,) = ({n},) for "
             f"particles of shape (n, d); got {logp.shape}"
         )
-    return logp, feats
+    return logp, aux
 
 
 def _logp_and_score(logdensity_fn: LogDensityFn, x: jax.Array):
@@ -219,11 +218,11 @@ def _logp_score_features(logdensity_fn: LogDensityFn, x: jax.Array, mode: Jacobi
 
     def stacked(p):
         logp, feats = _split_output(logdensity_fn(p), n)
-        if feats is None:
+        if feats.shape[1] == 0:
             raise ValueError(
                 "the kernel reads features from the log density (feature_kernel "
                 "without feature_fn): logdensity_fn must return "
-                "(logp (n,), features (n, f))"
+                "(logp (n,), features (n, f)) with f >= 1"
             )
         return jnp.concatenate([logp[:, None], feats.astype(logp.dtype)], axis=1)
 
@@ -256,14 +255,14 @@ def build_evaluate(
     """Builds `evaluate(particles (n, d)) -> Evaluation`: what a step reads of log ρ.
 
     Args:
-      logdensity_fn: batched log ρ, (n, d) -> (n,) or ((n,), (n, f)).
+      logdensity_fn: batched log ρ, (n, d) -> (logp (n,), aux (n, f)).
       features: also return the features of the same rollout and their
         Jacobians (for a kernel that reads them), differentiated as
         `jacobian` says ('auto': whichever of 1+f and d is smaller); without
         features, 'rev' takes the scores from one pullback, 'fwd' from d
         tangents, 'auto' the latter when d <= 2.
       jacobian: 'auto', 'fwd' or 'rev'.
-      log_target_fn: batched (n, d) -> (n,) log p(Γ(θ)) for discrete SVGD.
+      log_target_fn: batched (n, d) -> (log p(Γ(θ)) (n,), aux) for discrete SVGD.
 
     Returns:
       A jit-able function of the particles.
@@ -280,11 +279,8 @@ def build_evaluate(
         else:
             logp, score = _logp_and_score(logdensity_fn, x)
         if log_target_fn is not None:
-            log_target = jax.lax.stop_gradient(log_target_fn(x))
-            if log_target.shape != (n,):
-                raise ValueError(
-                    f"log_target_fn must return shape (n,) = ({n},); got {log_target.shape}"
-                )
+            log_target = jax.lax.stop_gradient(
+                _split_output(log_target_fn(x), n, "log_target_fn")[0])
         return Evaluation(logp, score, feats, feats_jac, log_target)
 
     return evaluate
@@ -389,12 +385,12 @@ def stein_direction(
     finite get zero score and zero weight.
 
     Args:
-      logdensity_fn: batched (n, d) -> (n,) log ρ, or (n, d) -> ((n,), (n, f))
+      logdensity_fn: batched (n, d) -> (log ρ (n,), aux (n, f)), aux the features
         when the kernel reads features from it.
       kernel: a `Kernel`.
       particles: (n, d), n >= 2.
-      log_target_fn: batched (n, d) -> (n,) log p(Γ(θ)), the discrete target at
-        the hard decode; no gradient is taken through it.
+      log_target_fn: batched (n, d) -> (log p(Γ(θ)) (n,), aux), the discrete
+        target at the hard decode; no gradient is taken through it.
       jacobian: 'auto', 'fwd' or 'rev': how to differentiate log ρ and the
         features when the kernel reads features from the log density.
 
@@ -551,8 +547,8 @@ def build_svgd_step(
     """Builds the SVGD step θ_i ← θ_i + ε φ_i (through `optimizer`).
 
     Args:
-      logdensity_fn: batched log ρ, (n, d) -> (n,), or -> ((n,), (n, f)) for a
-        `feature_kernel()` that reads the features from it.
+      logdensity_fn: batched log ρ, (n, d) -> (logp (n,), aux (n, f)), aux
+        the features for a `feature_kernel()` that reads them from it.
       kernel: a `Kernel`; None for `rbf()` with the median heuristic.
       optimizer: optax transformation; `optax.sgd(ε)` gives eq. (1) exactly.
       jacobian: 'auto', 'fwd' or 'rev' (see `stein_direction`).
@@ -585,7 +581,7 @@ def build_dsvgd_step(
 
     Args:
       logdensity_fn: batched log ρ (see `build_svgd_step`).
-      log_target_fn: batched (n, d) -> (n,) log p(Γ(θ)); no gradient is taken.
+      log_target_fn: batched (n, d) -> (log p(Γ(θ)) (n,), aux); no gradient is taken.
       kernel: a `Kernel`; None for `rbf()`.
       optimizer: optax transformation.
       jacobian: 'auto', 'fwd' or 'rev'.
@@ -646,7 +642,7 @@ def build_sgd_step(
     ignored (and pruned from the computation).
 
     Args:
-      logdensity_fn: batched log ρ, (n, d) -> (n,) or ((n,), (n, f)).
+      logdensity_fn: batched log ρ, (n, d) -> (logp (n,), aux (n, f)).
       optimizer: optax transformation.
       jacobian: how the scores are computed: 'rev' (one pullback; any d),
         'fwd' (d batched tangents) or 'auto': 'fwd' when d <= 2, else 'rev'.
