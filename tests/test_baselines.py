@@ -37,14 +37,14 @@ def test_each_baseline_finds_a_plan_that_verifies(tiny, method):
 
 
 def test_blocking_finds_both_task_plans_and_blocks_what_it_found(tiny):
-    from mjstamp.baselines.methods import _Blocks
+    from mjstamp.baselines.methods import Blocks
 
     r = baselines.run("blocking", tiny, target=2, cap_s=300, seed=1, config=SMALL, starts=8)
     assert r.reached
     assert sorted(r.task_plans) == ["0-goal", "1-goal"]
     # The next run's penalty holds exactly the task plans found, each once.
     problem = tiny.build()
-    spec = _Blocks(problem, np.float64).spec(r.found)
+    spec = Blocks(problem, np.float64).spec(r.found)
     assert spec["blocked_on"].sum() == 2
     blocked = sorted("".join(str(int(b)) for b in row)
                      for row, on in zip(spec["blocked"], spec["blocked_on"], strict=True) if on)

@@ -19,7 +19,7 @@ from mjstamp.svgd import (
     sum_kernels,
     von_mises,
 )
-from mjstamp.svgd.kernels import _median_pairwise_distance
+from mjstamp.svgd.kernels import median_pairwise_distance
 
 N, D = 9, 5
 
@@ -139,7 +139,7 @@ def test_gram_is_positive_semidefinite_on_random_points(points, family):
     assert np.linalg.eigvalsh(gram).min() > -1e-9
 
 
-_MEDIAN = jax.jit(_median_pairwise_distance)
+_MEDIAN = jax.jit(median_pairwise_distance)
 
 
 @settings(max_examples=40, deadline=None)

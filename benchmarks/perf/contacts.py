@@ -46,7 +46,7 @@ def _timed(pm, draws) -> float:
     from mjstamp.scenes import contacts
     from mjstamp.scenes.contacts import compare
 
-    fn = compare._mjx_collide(pm.xml, contacts.table_version())  # noqa: SLF001
+    fn = compare.mjx_collide(pm.xml, contacts.table_version())
     args = [jnp.asarray(a) for a in (draws.size, draws.rbound, draws.margin, draws.gap,
                                      draws.qpos, *compare.c_poses(pm, draws))]
     jax.block_until_ready(fn(*args))

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import copy
 import json
 import sys
 import time
@@ -109,8 +108,7 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
     for key in ("mjx", "ported"):
         # N.B. a fresh Scene per table: the table is read when a rollout is traced, and
         # a Scene memoises its compiled rollouts.
-        scene = copy.copy(ported.scene)
-        scene._rollouts = {}  # noqa: SLF001
+        scene = ported.scene.fresh()
         t = ported.on_scene(scene)
         block = contacts.mjx_own() if key == "mjx" else contextlib.nullcontext()
         try:

@@ -227,7 +227,7 @@ def run_blocking(task, *, target: int | None = None, cap_s: float = 600.0, seed:
     tracker = Tracker(problem, target, cap_s, start=started)
     key = jax.random.key(seed)
     dtype = problem.scene.dtype
-    blocks = _Blocks(problem, dtype)
+    blocks = Blocks(problem, dtype)
     runs = 0
     while not tracker.done:
         spec = empty_spec(problem, MAX_BLOCKED, dtype)
@@ -240,7 +240,7 @@ def run_blocking(task, *, target: int | None = None, cap_s: float = 600.0, seed:
         "block_weight": block_weight, "max_blocked": MAX_BLOCKED})
 
 
-class _Blocks:
+class Blocks:
     """The blocking penalty's arrays for the task plans found so far (the latest MAX_BLOCKED)."""
 
     def __init__(self, problem: Problem, dtype):

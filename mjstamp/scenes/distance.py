@@ -1021,10 +1021,15 @@ def _refine_ridge(g, w: jax.Array) -> jax.Array:
 # N.B. over 80 lines: one numerical routine (direction search, witness points, the
 # gradient path) whose steps share a dozen locals; split, they would travel as arguments.
 def _convex_pair(core_a: int, core_b: int):
-    """Pair function for two curved (or point/segment) cores, by the dual."""
+    """Pair function for two curved (or point/segment) cores, by the dual.
+
+    Long: the dual's derivation reads as one piece (supports, Newton steps, the
+    face cases); split, its steps would pass a dozen arrays between them.
+    """
     faces = (_SEGMENT, _CYLINDER_CORE)  # supports that can be a whole face
 
     def fn(sa, pa, ma, sb, pb, mb):
+        """Signed distance of the two cores at their poses (long: see `_convex_pair`)."""
         dtype = pa.dtype
         scale_a, scale_b = _core_scale(core_a, sa), _core_scale(core_b, sb)
         radii = (sa[0] if core_a in (_POINT, _SEGMENT) else 0.0) + (

@@ -415,10 +415,15 @@ class Scene:
         options = dataclasses.replace(self.grad_options, **fields)
         if options == self.grad_options:
             return self
-        other = copy.copy(self)
+        other = self.fresh()
         other.grad_options = options
         other.m_grad = options.apply(self.m)
         other.mx = cast_floats(mjx.put_model(other.m_grad, device=local_device()), self.dtype)
+        return other
+
+    def fresh(self) -> Scene:
+        """A shallow copy that compiles its own rollouts (none of this one's memoised ones)."""
+        other = copy.copy(self)
         other._rollouts = {}
         return other
 

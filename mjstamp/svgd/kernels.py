@@ -182,7 +182,7 @@ def _sqdist(z: jax.Array) -> jax.Array:
     return d2 * (1.0 - jnp.eye(z.shape[0], dtype=z.dtype))
 
 
-def _median_pairwise_distance(d2: jax.Array, valid: jax.Array | None = None) -> jax.Array:
+def median_pairwise_distance(d2: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     """median_{i<j} √d2_ij, exactly, from a symmetric (n, n) d2 with zero diagonal.
 
     With `valid` ((n,) bool), only pairs of valid particles count.
@@ -232,7 +232,7 @@ def _median_bandwidth_from_sqdist(d2: jax.Array, valid: jax.Array | None = None)
     """
     n = d2.shape[0]
     # No gradient flows through the bandwidth (and none into the bisection).
-    med = _median_pairwise_distance(jax.lax.stop_gradient(d2), valid)
+    med = median_pairwise_distance(jax.lax.stop_gradient(d2), valid)
     # N.B. divided by a Python constant, as before masks existed: XLA turns that into a
     # multiply, a division by a traced scale would round differently.
     full = med / math.sqrt(math.log(n))

@@ -301,6 +301,9 @@ def _clip_half_plane(poly, n, coord, sign, limit):
 def _face_contacts(code, rot, pos21, pos12, info1, info2, margin):
     """Stage 2b of `mjc_BoxBox` (engine_collision_box.c): the face-clipping manifold.
 
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source.
+
     Args:
       code: int, the winning face code 0..5 (others give a meaningless result).
       rot: (3, 3) box2 axes in box1 frame.

@@ -330,7 +330,7 @@ def c_poses(pm: PairModel, draws: Draws) -> tuple[np.ndarray, np.ndarray]:
 
 
 @functools.cache
-def _mjx_collide(xml: str, table_key, c_kinematics: bool = True):
+def mjx_collide(xml: str, table_key, c_kinematics: bool = True):
     """Compiled batched MJX collision of the pair model (sizes, margins, poses vmapped)."""
     m = mujoco.MjModel.from_xml_string(xml)
     mx = mjx.put_model(m)
@@ -370,7 +370,7 @@ def mjx_contacts(pm: PairModel, draws: Draws, *, batch: int = 2048,
 
     if kinematics not in ("c", "mjx"):
         raise ValueError(f"kinematics={kinematics!r}; valid: c, mjx")
-    fn = _mjx_collide(pm.xml, contacts.table_version(), kinematics == "c")
+    fn = mjx_collide(pm.xml, contacts.table_version(), kinematics == "c")
     xpos, xmat = c_poses(pm, draws)
     out = []
     for start in range(0, len(draws), batch):

@@ -230,7 +230,7 @@ def _hull_from(verts, pv, nv, k, nsteps):
 def gjk_multi_area(a, b, c, d):
     from mjstamp.scenes.contacts import gjk_multi  # pylint: disable=g-import-not-at-top
 
-    return gjk_multi._area4(a, b, c, d)  # pylint: disable=protected-access
+    return gjk_multi.area4(a, b, c, d)
 
 
 def plane_mesh(k2: Kind, info1, info2, margin):

@@ -563,6 +563,9 @@ def gjk(k1: Kind, k2: Kind, o1: Obj, o2: Obj, x1, x2, vi1, vi2, *, shrink, get_d
         dist_cutoff, tolerance=CCD_TOLERANCE, kmax=CCD_ITERATIONS) -> GJKResult:
     """The gjk function (with gjkIntersect) of engine_collision_gjk.c, as the 3.17 binary runs it.
 
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source.
+
     Args:
       k1: static description of geom 1.
       k2: static description of geom 2.
@@ -599,6 +602,7 @@ def gjk(k1: Kind, k2: Kind, o1: Obj, o2: Obj, x1, x2, vi1, vi2, *, shrink, get_d
                  vi1=vi1, vi2=vi2)
 
     def step(_, st):
+        """One pass of C's loop, its three modes in C's order (long: see `gjk`)."""
         mode, k, n = st["mode"], st["k"], st["n"]
         m0, m1, m2 = mode == 0, mode == 1, mode == 2
         # ---- mode 0: head of a gjk iteration
@@ -846,6 +850,9 @@ _ADJ4 = ((1, 3, 2), (2, 3, 0), (0, 3, 1), (2, 0, 1))
 def start_polytope(k1, k2, o1, o2, simplex: Vert, nsimplex, vi1, vi2, kmax):
     """polytope2/3/4 (and replaceSimplex3) as mjc_ccd picks them by the GJK simplex size.
 
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source.
+
     The start polytopes are built in small arrays and the chosen one is written
     into the fixed-size polytope once.
 
@@ -1025,6 +1032,9 @@ def epa(k1, k2, o1, o2, P: Polytope, vi1, vi2, *, discrete, tolerance=CCD_TOLERA
         kmax=CCD_ITERATIONS, nhorizon=NHORIZON, ndfs=NDFS) -> EPAResult:
     """The EPA (epa in engine_collision_gjk.c): expands the polytope toward the penetration depth.
 
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source.
+
     Args:
       k1: static description of geom 1.
       k2: static description of geom 2.
@@ -1049,6 +1059,7 @@ def epa(k1, k2, o1, o2, P: Polytope, vi1, vi2, *, discrete, tolerance=CCD_TOLERA
     hidx = jnp.arange(nhorizon)
 
     def body(k, c):
+        """One EPA iteration in C's order (long: see `epa`)."""
         P, face, upper, upper2, done, vi1, vi2, over = c
         act = ~done
         pface = face
@@ -1194,6 +1205,9 @@ def discrete(k: Kind, o: Obj):
 def ccd(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
         tolerance=CCD_TOLERANCE, kmax=CCD_ITERATIONS) -> CCDResult:
     """mjc_ccd followed by mjc_penetration's test (the 3.17 binary, native CCD).
+
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source.
 
     Args:
       k1: static description of geom 1 (type 1 <= type 2 as mjc_Convex receives them).

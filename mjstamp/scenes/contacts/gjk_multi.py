@@ -230,6 +230,9 @@ def face_normals(k: Kind, o: Obj, dim, vi, d):
 def edge_normals(k: Kind, o: Obj, dim, v, vi, x):
     """Edge directions at a simplex feature, with their far ends and the (recomputed) start.
 
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source.
+
     Ports capsuleEdgeNormals, cylinderEdgeNormals, boxEdgeNormals and
     meshEdgeNormals of the binary (the start vertex is recomputed from its
     index, which removes the margin offset of EPA's support points).
@@ -351,7 +354,8 @@ def _plane_normal(v1, v2, n):
     return res, dot3(res, v1)
 
 
-def _area4(a, b, c, d):
+def area4(a, b, c, d):
+    """Area of the quadrilateral a, b, c, d (half the norm of its diagonals' cross product)."""
     g = cross3(a - c, b - d)
     return 0.5 * safe_sqrt(dot3(g, g))
 
@@ -363,7 +367,7 @@ def hull4(poly, npoly, nsteps):
     the area grows). Returns ((4,) indices, finished).
     """
     n = jnp.maximum(npoly, 1)
-    area = lambda i: _area4(poly[i[0]], poly[i[1]], poly[i[2]], poly[i[3]])  # noqa: E731
+    area = lambda i: area4(poly[i[0]], poly[i[1]], poly[i[2]], poly[i[3]])  # noqa: E731
     idx0 = jnp.array([0, 1, 2, 3])
     carry = (idx0, lax.stop_gradient(area(idx0)), idx0, jnp.array(0))  # (a,b,c,d), m, res, phase
 
@@ -497,6 +501,9 @@ def _simplex_dim(vi, v):
 def multicontact(k1: Kind, k2: Kind, o1: Obj, o2: Obj, sv1, si1, sv2, si2, nsimplex, x1, x2,
                  dist, max_contacts: int):
     """mjc_multicontact (3.17 binary): more witness pairs from the objects' simplex features.
+
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source.
 
     Args:
       k1: static description of geom 1.
