@@ -108,7 +108,7 @@ class Seeded:
 def screen_particles(
     problem, key: jax.Array, n: int, *, screen: int = 64, chunk: int = 256
 ) -> Seeded:
-    """`seed_particles`, also handing back the screen's successes by task plan."""
+    """`seed_particles`, also handing back its successes and the particles' C replay (`Seeded`)."""
     started = time.perf_counter()
     problem = as_problem(problem)
     total = n * max(1, int(screen))
