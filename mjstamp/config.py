@@ -92,7 +92,7 @@ class SolveConfig:
         and the last iterate returned (Algorithm 1 as written).
       robustness_samples: M perturbed MuJoCo C replays per verified plan under
         the task's uncertain physics (`Task.uncertain`, the defaults when it
-        declared none), for its robustness score (`plans.robustness`); 0: no
+        declared none), for its robustness score (`verify.robustness`); 0: no
         score. The same draws for every plan, seeded by the solve's seed.
       robust: plan for uncertain physics: every particle is rolled out in K =
         `robust` draws of the task's uncertainty (`Problem.with_robust`; the

@@ -209,7 +209,7 @@ def robustness_figure(result) -> Figure:
     """Each verified plan's robustness score, one row per task plan (best and median marked).
 
     The score is the share of perturbed MuJoCo C replays in which the plan
-    still succeeds (`plans.robustness`).
+    still succeeds (`verify.robustness`).
     """
     rob = result.robustness
     success = np.asarray(rob["success"], float)

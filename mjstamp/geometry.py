@@ -12,10 +12,11 @@ poses, colours and contact forces from here, so the two cannot disagree.
 
 A replay is the initial state s_0 = (qpos0, qvel0) and the states s_1..s_T
 after each step, with ctrl[t] the control applied over the step from s_t to
-s_{t+1} (as `plans.Replay` and results directories hold them). Each frame is
-computed with one `mj_forward` (or `mj_kinematics` when no force is asked for).
+s_{t+1} (as `verify.Replay` and results directories hold them). Each frame is
+posed by `mj_kinematics` (`kinematics.poses`); its forces, where asked for, come
+from one `mj_forward`.
 
-Imports only mujoco and numpy (no JAX, no matplotlib, no meshcat).
+Imports only mujoco, numpy and `mjstamp.kinematics` (no JAX, no matplotlib, no meshcat).
 
 References:
   STAMP Fig. 3 and 7 (plan paths), Fig. 6 (contact-force arrows).
@@ -28,6 +29,8 @@ from typing import NamedTuple
 
 import mujoco
 import numpy as np
+
+from mjstamp.kinematics import poses
 
 __all__ = [
     "DEFAULT_RGBA",
@@ -195,10 +198,8 @@ class Frames(NamedTuple):
 
 def pose(m: mujoco.MjModel, qpos: np.ndarray) -> Pose:
     """The `Pose` of one configuration qpos (nq,), by `mj_kinematics`."""
-    d = mujoco.MjData(m)
-    d.qpos[:] = qpos
-    mujoco.mj_kinematics(m, d)
-    return Pose(*(np.array(getattr(d, name)) for name in Pose._fields))
+    k = poses(m, qpos, Pose._fields)
+    return Pose(*(k[name] for name in Pose._fields))
 
 
 def replay_frames(
@@ -241,14 +242,12 @@ def replay_frames(
         ctrl = None
     idx = np.arange(len(qpos)) if states is None else np.asarray(states, int)
     pairs = tuple((int(a), int(b)) for a, b in pairs)
-    d = mujoco.MjData(m)
-    poses = {name: [] for name in Pose._fields}
     force = np.zeros((len(idx), len(pairs), 3))
     point = np.full((len(idx), len(pairs), 3), np.nan)
-    for f, t in enumerate(idx):
-        d.qpos[:] = qpos[t]
-        if forces:
-            d.qvel[:] = qvel[t]
+    if forces:
+        d = mujoco.MjData(m)
+        for f, t in enumerate(idx):
+            d.qpos[:], d.qvel[:] = qpos[t], qvel[t]
             if ctrl is not None:
                 d.ctrl[:] = ctrl[min(t, len(ctrl) - 1)]
             mujoco.mj_forward(m, d)
@@ -256,10 +255,6 @@ def replay_frames(
                 force[f, k], p = contact_force(m, d, a, b)
                 if p is not None:
                     point[f, k] = p
-        else:
-            mujoco.mj_kinematics(m, d)
-        for name, values in poses.items():
-            values.append(np.array(getattr(d, name)))
-    stacked = {name: np.array(v).reshape(len(idx), *getattr(d, name).shape)
-               for name, v in poses.items()}
-    return Frames(states=idx, pairs=pairs, force=force, point=point, **stacked)
+    # N.B. the poses `mj_forward` computes are those of `mj_kinematics`: its first stage.
+    return Frames(states=idx, pairs=pairs, force=force, point=point,
+                  **poses(m, qpos[idx], Pose._fields))

@@ -1,7 +1,7 @@
 """Ground truth for coverage: sample a task's θ box in MuJoCo C and list its modes.
 
 Shots over the box of θ are replayed in MuJoCo C with the scene's own solver
-settings and decoded exactly as solved plans are (`plans.decode`); every task
+settings and decoded exactly as solved plans are (`verify.decode`); every task
 plan that succeeds somewhere is listed with the share of the box it occupies.
 Coverage of a solve = found task plans / feasible task plans occupying at least
 `min_share` of the box.
@@ -38,7 +38,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from mjstamp import plans as plans_mod
+from mjstamp import fileio, verify
 from mjstamp.errors import MjstampError
 
 CACHE = Path.home() / ".cache" / "mjstamp" / "modes"
@@ -84,7 +84,7 @@ def _write_cache(path: Path, result: dict, cache: bool) -> None:
         return
     try:
         CACHE.mkdir(parents=True, exist_ok=True)
-        plans_mod.write_atomic(path, lambda f: f.write(json.dumps(result).encode()))
+        fileio.write_atomic(path, lambda f: f.write(json.dumps(result).encode()))
     except OSError:
         pass  # a read-only cache only costs time
 
@@ -103,7 +103,7 @@ def _count_plans(task, theta: np.ndarray, *, chunk: int, progress: bool | None, 
             print(f"[modes] {desc}: {start}/{len(theta)} shots replayed in MuJoCo C",
                   file=sys.stderr, flush=True)
         part = theta[start : start + chunk]
-        decoded = plans_mod.decode(task, plans_mod.simulate_c(task, part), part)
+        decoded = verify.decode(task, verify.simulate_c(task, part), part)
         ok_total += int(decoded.ok.sum())
         for plan, code, ok in zip(decoded.plan, decoded.code, decoded.ok, strict=True):
             if ok:
@@ -251,14 +251,14 @@ def random_search(task, wall_s: float, *, seed: int = 0, chunk: int = 256) -> di
         raise MjstampError(f"random_search(wall_s={wall_s}) must be > 0")
     rng = np.random.default_rng(seed)
     warm = uniform_theta(task, chunk, np.random.default_rng([seed, 1]))
-    plans_mod.decode(task, plans_mod.simulate_c(task, warm), warm)
+    verify.decode(task, verify.simulate_c(task, warm), warm)
     found_at: dict[str, float] = {}
     shots = successes = 0
     t0 = time.perf_counter()
     elapsed = 0.0
     while True:
         theta = uniform_theta(task, chunk, rng)
-        decoded = plans_mod.decode(task, plans_mod.simulate_c(task, theta), theta)
+        decoded = verify.decode(task, verify.simulate_c(task, theta), theta)
         now = time.perf_counter() - t0
         if now > wall_s:
             break

@@ -27,8 +27,8 @@ from collections import defaultdict
 import jax
 import numpy as np
 
-from mjstamp import plans as plans_mod
-from mjstamp.tasks import Problem
+from mjstamp import verify
+from mjstamp.tasks import Problem, as_problem
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +57,7 @@ class Screen:
         return dataclasses.asdict(self)
 
 
-def _group_keys(decoded: plans_mod.Decoded) -> list[str]:
+def _group_keys(decoded: verify.Decoded) -> list[str]:
     keys = []
     for i in range(len(decoded.ok)):
         if decoded.ok[i]:
@@ -95,36 +95,45 @@ class Seeded:
       screen: the `Screen` report.
       successes: {task plan: (m, d) candidates that reached it in MuJoCo C},
         best cost first; the stall rescue re-draws near them (`Redraw`).
+      replay: the particles' MuJoCo C replay, from the screen's own (None
+        without a screen: nothing was replayed).
     """
 
     particles: np.ndarray
     screen: Screen
     successes: dict[str, np.ndarray]
+    replay: verify.Replay | None = None
 
 
 def screen_particles(
     problem, key: jax.Array, n: int, *, screen: int = 64, chunk: int = 256
 ) -> Seeded:
-    """`seed_particles`, also handing back the screen's successes by task plan."""
+    """`seed_particles`, also handing back its successes and the particles' C replay (`Seeded`)."""
     started = time.perf_counter()
-    problem = problem if isinstance(problem, Problem) else problem.build()
+    problem = as_problem(problem)
     total = n * max(1, int(screen))
     candidates = np.asarray(problem.init(key, total), np.float64)
     if screen <= 1:
         return Seeded(candidates, Screen(total, 0, {}, 0, time.perf_counter() - started), {})
     groups: dict[str, list[tuple[float, int]]] = defaultdict(list)
     successes: dict[str, int] = defaultdict(int)
+    states: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for start in range(0, total, chunk):
         part = candidates[start : start + chunk]
-        replay = plans_mod.simulate_c(problem, part)
+        replay = verify.simulate_c(problem, part)
         decoded = problem.decode(replay, part)
-        cost = plans_mod.cost_c(problem, replay, part)
+        cost = verify.cost_c(problem, replay, part)
         for j, k in enumerate(_group_keys(decoded)):
             groups[k].append((float(cost[j]), start + j))
+            states[start + j] = (replay.qpos[j], replay.qvel[j], replay.ctrl[j])
             if decoded.ok[j]:
                 successes[str(decoded.plan[j])] += 1
-    for members in groups.values():
-        members.sort()
+        for members in groups.values():
+            members.sort()
+        depth = _unreachable_depth([len(members) for members in groups.values()], n)
+        for members in groups.values():
+            for _, i in members[depth:]:
+                states.pop(i, None)
     costs = np.array([c for members in groups.values() for c, _ in members])
     costs = costs[np.isfinite(costs)]
     order = sorted(groups, key=lambda k: (not k.startswith("ok:"), groups[k][0][0]))
@@ -144,7 +153,24 @@ def screen_particles(
     )
     found = {k[len("ok:"):]: candidates[[i for _, i in groups[k]]]
              for k in order if k.startswith("ok:")}
-    return Seeded(candidates[np.asarray(chosen)], report, found)
+    qpos, qvel, ctrl = (np.stack(a) for a in zip(*(states[i] for i in chosen), strict=True))
+    # N.B. the screen's own C states of the chosen candidates: the solve replays them no more.
+    replay = verify.Replay(problem, qpos, source="mujoco", qvel=qvel, ctrl=ctrl)
+    return Seeded(candidates[np.asarray(chosen)], report, found, replay)
+
+
+def _unreachable_depth(sizes: list[int], n: int) -> int:
+    """The least rank r no candidate of that rank in its group is chosen at: Σ min(size, r) >= n.
+
+    The round-robin takes every group's candidates of rank < r before any of
+    rank r, so one of rank >= r comes after at least n others and is never
+    chosen. More candidates only raise every rank and size: what is
+    unreachable now stays so, and the screen drops its states.
+    """
+    for r in range(1, max(sizes, default=0) + 1):
+        if sum(min(s, r) for s in sizes) >= n:
+            return r
+    return max(sizes, default=0)
 
 
 def auto_cost_scale(screen: Screen | None) -> float:

@@ -9,7 +9,7 @@ Which plans are *returned*: the particles whose MJX rollout (the planner's own
 model) satisfies the task's success predicate; each is then replayed in MuJoCo
 C with the scene's own solver settings, and counts as *verified* when the
 predicate holds there too. The task plan of a verified plan is read off its C
-replay. A returned plan that fails in C is refined there (`plans.repair`).
+replay. A returned plan that fails in C is refined there (`verify.repair`).
 """
 
 from __future__ import annotations
@@ -30,12 +30,11 @@ import numpy as np
 import optax
 
 from mjstamp import checkpoint as checkpoint_mod
-from mjstamp import parallel, results, seeding, svgd
-from mjstamp import plans as plans_mod
+from mjstamp import parallel, results, seeding, svgd, verify
 from mjstamp.config import SolveConfig
 from mjstamp.errors import FidelityWarning, MjstampError
 from mjstamp.scenes import contacts, fidelity
-from mjstamp.tasks import Problem, Task
+from mjstamp.tasks import Problem, Task, as_problem
 from mjstamp.tracecache import cached_jit
 
 __all__ = ["MAX_SEED", "SolveConfig", "SolveResult", "as_problem", "calibrate", "problem_jit",
@@ -44,11 +43,6 @@ __all__ = ["MAX_SEED", "SolveConfig", "SolveResult", "as_problem", "calibrate", 
 
 #: The largest seed: JAX's PRNG keys take a signed 64-bit integer, NumPy's non-negative ones.
 MAX_SEED = 2**63 - 1
-
-
-def as_problem(task: Task | Problem) -> Problem:
-    """The `Problem` of a task (`task.build()`), or the problem itself."""
-    return task if isinstance(task, Problem) else task.build()
 
 
 def _box_widths(problem: Problem) -> np.ndarray:
@@ -82,10 +76,10 @@ class Outcome:
     """Particles θ (n, d) evaluated once: MJX cost and decode, MuJoCo C replay and decode."""
 
     cost: np.ndarray
-    mjx_replay: plans_mod.Replay
-    predicted: plans_mod.Decoded
-    replay: plans_mod.Replay
-    verified: plans_mod.Decoded
+    mjx_replay: verify.Replay
+    predicted: verify.Decoded
+    replay: verify.Replay
+    verified: verify.Decoded
 
     @property
     def good(self) -> np.ndarray:
@@ -129,9 +123,9 @@ class SolveResult:
     cost: np.ndarray
     returned: np.ndarray
     repaired: np.ndarray
-    predicted: plans_mod.Decoded
-    verified: plans_mod.Decoded
-    replay: plans_mod.Replay
+    predicted: verify.Decoded
+    verified: verify.Decoded
+    replay: verify.Replay
     diagnostics: svgd.StampDiagnostics
     stamp: svgd.StampResult
     rows: list[dict]
@@ -218,8 +212,12 @@ def _say(progress: bool | None):
     )
 
 
-def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, say=None):
+def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, say=None,
+              reference: verify.Replay | None = None):
     """Calibrates the gradient model on particles θ; returns (problem, Calibration).
+
+    `reference`: θ's MuJoCo C replay where the caller has it (the seeding
+    screen's); None replays θ here.
 
     Raises:
       MjstampError: no setting within budget is faithful and
@@ -229,6 +227,7 @@ def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, say=None
     calibration = fidelity.calibrate(
         problem.scene, qpos0, qvel0, np.asarray(ctrl, np.float64),
         tolerance=cfg.fidelity_tolerance, max_iterations=cfg.max_solver_iterations,
+        reference=None if reference is None else reference.qpos,
     )
     if not calibration.faithful and not cfg.allow_unfaithful:
         raise MjstampError(
@@ -247,7 +246,7 @@ def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, say=None
 
 def mjx_divergence(problem: Problem, theta: np.ndarray, qpos_mjx: np.ndarray) -> np.ndarray:
     """(n,) divergence of MJX rollouts (n, T, nq) of θ from their C replays (own solver)."""
-    qpos_c = plans_mod.simulate_c(problem, theta).qpos
+    qpos_c = verify.simulate_c(problem, theta).qpos
     m = problem.scene.m
     return fidelity.divergence(fidelity.tracked_points(m, qpos_mjx),
                                fidelity.tracked_points(m, qpos_c))
@@ -284,29 +283,52 @@ class _Evaluator:
         cost, qpos = jax.device_get(self.fn(jnp.asarray(theta, self.problem.scene.dtype)))
         return np.asarray(cost, np.float64), np.asarray(qpos)
 
-    def __call__(self, theta: np.ndarray) -> Outcome:
+    def __call__(self, theta: np.ndarray, replay: verify.Replay | None = None) -> Outcome:
+        """θ's `Outcome`; `replay`: θ's MuJoCo C replay where it was made already."""
         cost, qpos = self.mjx(theta)
-        mjx_replay = plans_mod.Replay(self.problem, qpos, source="mjx")
-        replay = plans_mod.simulate_c(self.problem, theta)
+        mjx_replay = verify.Replay(self.problem, qpos, source="mjx")
+        replay = verify.simulate_c(self.problem, theta) if replay is None else replay
         return Outcome(cost, mjx_replay, self.problem.decode(mjx_replay, theta), replay,
                        self.problem.decode(replay, theta))
 
 
 def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
-    """(θ0 (n, d), screen report or None, the screen's successes by task plan).
+    """(θ0 (n, d), screen report or None, the screen's successes by task plan, θ0's C replay).
 
     Seeded from a C screen, or drawn from the prior (no screen, no successes).
+    θ0's MuJoCo C replay is made once here (the screen's own, where there is one)
+    and handed to calibration, the check of MJX and the evaluation of θ0.
     """
     key = jax.random.key(seed)
     if cfg.screen <= 1:
-        return problem.init(key, cfg.particles), None, {}
+        theta0 = problem.init(key, cfg.particles)
+        replay = verify.simulate_c(problem, np.asarray(theta0, np.float64))
+        return theta0, None, {}, replay
     say(f"screening {cfg.screen * cfg.particles} candidates in MuJoCo C")
     seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen)
-    return jnp.asarray(seeded.particles, problem.scene.dtype), seeded.screen, seeded.successes
+    # N.B. the candidates are draws in the scene's precision: the cast is exact, and
+    # the screen's replay is that of θ0.
+    theta0 = jnp.asarray(seeded.particles, problem.scene.dtype)
+    return theta0, seeded.screen, seeded.successes, seeded.replay
+
+
+def _posterior(problem: Problem, cfg: SolveConfig, screen, seed: int, say) -> Problem:
+    """The problem STAMP samples: its cost scale β (`cost_scale`) and robust planning set."""
+    auto = cfg.cost_scale == "auto"
+    scale = seeding.auto_cost_scale(screen) if auto else float(cfg.cost_scale)
+    if scale != 1:
+        problem = problem.with_cost_scale(scale)
+        say(f"posterior log ρ = −β·C with cost_scale β = {scale:.3g}"
+            + (" (auto: from the screen's costs)" if auto else ""))
+    if cfg.robust:
+        problem = problem.with_robust(cfg.robust, seed, cfg.robust_cvar)
+        say(f"robust planning: every particle in {cfg.robust} draws of the uncertain physics"
+            + ("" if cfg.robust_cvar == 1 else f", CVaR at {cfg.robust_cvar:g}"))
+    return problem
 
 
 def _check_mjx(problem: Problem, evaluate: _Evaluator, theta0: np.ndarray, calibration,
-               say) -> dict:
+               say, replay0: verify.Replay) -> dict:
     """MJX itself, not its C twin, on the calibration's particles (before STAMP starts).
 
     Where MJX parts from C beyond the tolerance and beyond C's own chaos
@@ -316,8 +338,7 @@ def _check_mjx(problem: Problem, evaluate: _Evaluator, theta0: np.ndarray, calib
     """
     say("MJX rollouts of the initial particles against MuJoCo C")
     _, qpos = evaluate.mjx(theta0)
-    verdict = _judge(problem, theta0, qpos, plans_mod.simulate_c(problem, theta0).qpos,
-                     calibration.tolerance_m)
+    verdict = _judge(problem, theta0, qpos, replay0.qpos, calibration.tolerance_m)
     m = problem.scene.m
     message = verdict.message(problem.scene.name, m, problem.horizon)
     if verdict.faithful:
@@ -390,7 +411,7 @@ def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, res
             directory, expect={k: meta[k] for k in ("task", "version", "fingerprint")},
             settings=settings, seed=seed)
         say(f"resuming from the checkpoint of {checkpoint_mod.describe(found)}")
-    plans_mod.check_writable(directory)
+    results.check_writable(directory)
     checkpointer = checkpoint_mod.Checkpointer(directory, meta, every_s=every_s,
                                                resume_hint=resume_hint, say=say)
     return checkpointer, snap
@@ -453,26 +474,17 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     say, clock = _say(progress), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
                                         checkpoint_every_s, resume_hint, say, devices)
-    theta0, screen, successes = _initial_particles(problem, cfg, seed, say)
+    theta0, screen, successes, replay0 = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
     clock["screen"] = time.perf_counter()
     calibration, report = None, {"calibrated": False}
     if cfg.calibrate:
-        problem, calibration = calibrate(problem, theta0_np, cfg, say=say)
+        problem, calibration = calibrate(problem, theta0_np, cfg, say=say, reference=replay0)
         report = calibration.as_dict()
     evaluate = _Evaluator(problem, theta0_np)
     if calibration is not None:
-        report.update(_check_mjx(problem, evaluate, theta0_np, calibration, say))
-    auto = cfg.cost_scale == "auto"
-    scale = seeding.auto_cost_scale(screen) if auto else float(cfg.cost_scale)
-    if scale != 1:
-        problem = problem.with_cost_scale(scale)
-        say(f"posterior log ρ = −β·C with cost_scale β = {scale:.3g}"
-            + (" (auto: from the screen's costs)" if auto else ""))
-    if cfg.robust:
-        problem = problem.with_robust(cfg.robust, seed, cfg.robust_cvar)
-        say(f"robust planning: every particle in {cfg.robust} draws of the uncertain physics"
-            + ("" if cfg.robust_cvar == 1 else f", CVaR at {cfg.robust_cvar:g}"))
+        report.update(_check_mjx(problem, evaluate, theta0_np, calibration, say, replay0))
+    problem = _posterior(problem, cfg, screen, seed, say)
     clock["calibrate"] = time.perf_counter()
     cpu = time.process_time()
     with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
@@ -484,8 +496,10 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     theta = np.asarray(stamp.particles, np.float64)
     outcome = evaluate(theta)
     source = np.full(len(theta), "final", dtype=object)
-    snapshots = {"svgd": np.asarray(stamp.svgd_particles, np.float64), "initial": theta0_np}
-    visited = {name: (snap, evaluate(snap)) for name, snap in snapshots.items()}
+    svgd_theta = np.asarray(stamp.svgd_particles, np.float64)
+    # N.B. θ0's C replay is the one made before STAMP: replayed once per solve.
+    visited = {"svgd": (svgd_theta, evaluate(svgd_theta)),
+               "initial": (theta0_np, evaluate(theta0_np, replay0))}
     loss = _loss_report({"initial": visited["initial"][1].cost,
                          "svgd": visited["svgd"][1].cost, "final": outcome.cost})
     if cfg.keep_visited:
@@ -506,11 +520,11 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     return SolveResult(
         problem=problem, config={"seed": seed, "task": dict(problem.settings),
                                  "solve": cfg.as_dict()},
-        theta=theta, svgd_theta=np.asarray(stamp.svgd_particles, np.float64),
+        theta=theta, svgd_theta=svgd_theta,
         initial_theta=theta0_np, cost=outcome.cost, returned=returned, repaired=repaired,
         predicted=outcome.predicted, verified=outcome.verified, replay=outcome.replay,
         diagnostics=stamp.diagnostics, stamp=stamp,
-        rows=plans_mod.group(outcome.cost, returned, outcome.predicted, outcome.verified,
+        rows=results.group(outcome.cost, returned, outcome.predicted, outcome.verified,
                              repaired, None if robust is None else robust["success"]),
         timings=_timings(clock), fidelity=report,
         screen=None if screen is None else screen.as_dict(), source=source,
@@ -574,7 +588,7 @@ def _repair(problem, cfg, theta, returned, outcome, evaluate, seed, say):
     if not (cfg.repair and len(failed)):
         return theta, repaired, outcome
     say(f"repairing {len(failed)} returned plans that fail in MuJoCo C")
-    fix = plans_mod.repair(problem, theta[failed], outcome.predicted.plan[failed],
+    fix = verify.repair(problem, theta[failed], outcome.predicted.plan[failed],
                            rounds=cfg.repair_rounds, samples=cfg.repair_samples, seed=seed)
     if fix.repaired.any():
         theta = theta.copy()
@@ -585,7 +599,7 @@ def _repair(problem, cfg, theta, returned, outcome, evaluate, seed, say):
 
 
 def _robustness(problem, cfg, theta, verified, plan, seed, say) -> dict | None:
-    """Every verified plan's robustness score (`plans.robustness`), or None when off.
+    """Every verified plan's robustness score (`verify.robustness`), or None when off.
 
     Returns:
       {"samples", "seed", "seconds", "rollouts", "uncertain", "declared", "success",
@@ -597,7 +611,7 @@ def _robustness(problem, cfg, theta, verified, plan, seed, say) -> dict | None:
     idx = np.flatnonzero(verified)
     say(f"scoring {len(idx)} verified plans under uncertain physics "
         f"({cfg.robustness_samples} perturbed MuJoCo C replays each)")
-    rob = plans_mod.robustness(problem, theta[idx], plan[idx], samples=cfg.robustness_samples,
+    rob = verify.robustness(problem, theta[idx], plan[idx], samples=cfg.robustness_samples,
                                seed=seed)
     out = {"samples": rob.samples, "seed": rob.seed, "seconds": rob.seconds,
            "rollouts": rob.rollouts, "uncertain": rob.uncertain, "declared": rob.declared}
@@ -608,7 +622,7 @@ def _robustness(problem, cfg, theta, verified, plan, seed, say) -> dict | None:
     return out
 
 
-def _plan_counts(decoded: plans_mod.Decoded) -> dict[str, int]:
+def _plan_counts(decoded: verify.Decoded) -> dict[str, int]:
     counts: dict[str, int] = {}
     for ok, plan in zip(decoded.ok, decoded.plan, strict=True):
         key = plan if ok else "(no plan)"

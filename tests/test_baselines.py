@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjstamp import baselines, plans
+from mjstamp import baselines, verify
 from mjstamp.baselines.common import constrained_logdensity, empty_spec
 from mjstamp.baselines.compare import compare
 from mjstamp.cli import main
@@ -31,7 +31,7 @@ def test_each_baseline_finds_a_plan_that_verifies(tiny, method):
     assert r.reached and len(r.found) == 1 and r.time_to(1) <= r.wall_s
     # Replayed anew in MuJoCo C, the plan succeeds with the task plan reported.
     theta = np.asarray([r.found[0]["theta"]])
-    decoded = plans.decode(tiny, plans.simulate_c(tiny, theta), theta)
+    decoded = verify.decode(tiny, verify.simulate_c(tiny, theta), theta)
     assert decoded.ok[0] and decoded.plan[0] == r.found[0]["task_plan"]
     assert r.summary()["distinct_verified_task_plans"] == 1
 

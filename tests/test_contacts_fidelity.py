@@ -9,6 +9,7 @@ and `fidelity.judge` must name the pair; with C's routine ported
 import numpy as np
 import pytest
 
+from mjstamp import verify
 from mjstamp.scenes import Scene, contacts, fidelity
 from mjstamp.scenes.rollout import replay
 
@@ -101,7 +102,7 @@ def test_solve_warns_in_one_line_and_goes_on_where_mjx_parts(monkeypatch, tiny_t
 
     problem = tiny_task().build()
     theta = np.array([[1.0, 0.5], [1.5, -0.5]])
-    qpos_c = solve_mod.plans_mod.simulate_c(problem, theta).qpos
+    qpos_c = verify.simulate_c(problem, theta).qpos
     off = qpos_c.copy()
     off[:, 10:, 0] += 0.05  # the puck jumps 5 cm at step 11
 

@@ -8,7 +8,7 @@ contacts under load) into a wall; one Newton iteration does not converge there.
 import numpy as np
 import pytest
 
-from mjstamp import plans
+from mjstamp import verify
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene, fidelity
 from mjstamp.scenes.check import CheckSpec, check_scene
@@ -145,20 +145,20 @@ def test_repair_turns_a_perturbed_plan_into_one_that_verifies():
     # A shot that slides into the goal, from a MuJoCo C sweep of the box.
     axis = np.linspace(-3, 3, 41)
     grid = np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2)
-    ok = plans.decode(task, plans.simulate_c(task, grid), grid).ok
+    ok = verify.decode(task, verify.simulate_c(task, grid), grid).ok
     assert ok.any()
     good = grid[np.flatnonzero(ok)[ok.sum() // 2]]
     # Turned until it misses.
     for angle in np.linspace(0.1, 1.0, 10):
         turn = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
         bad = (turn @ good)[None]
-        if not plans.decode(task, plans.simulate_c(task, bad), bad).ok[0]:
+        if not verify.decode(task, verify.simulate_c(task, bad), bad).ok[0]:
             break
     else:
         raise AssertionError("no turn of the shot misses the goal")
-    fix = plans.repair(task, bad, np.array(["0-goal"]), rounds=8, samples=32, seed=0)
+    fix = verify.repair(task, bad, np.array(["0-goal"]), rounds=8, samples=32, seed=0)
     assert fix.repaired[0]
-    assert plans.decode(task, plans.simulate_c(task, fix.theta), fix.theta).ok[0]
+    assert verify.decode(task, verify.simulate_c(task, fix.theta), fix.theta).ok[0]
     assert fix.rollouts <= 1 + 8 * 32
 
 

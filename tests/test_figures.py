@@ -11,7 +11,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PathCollection
 from matplotlib.image import imread
 
-from mjstamp import figures, geometry, plans
+from mjstamp import figures, geometry, verify
 from mjstamp.errors import MjstampError
 from mjstamp.solve import solve
 
@@ -245,7 +245,7 @@ def test_contact_force_points_from_a_into_b(result):
     task = result.task
     m = task.scene.m
     theta = np.array([[2.0, 0.0]])
-    shot = types.SimpleNamespace(task=task, theta=theta, replay=plans.simulate_c(task, theta))
+    shot = types.SimpleNamespace(task=task, theta=theta, replay=verify.simulate_c(task, theta))
     puck, wall = task.scene.geom("puck"), task.scene.geom("wall")
     frames = figures.plan_frames(shot, 0, [(puck, wall), (wall, puck)])
     on_wall, back = figures.plan_drawing(m, frames, trace=[]).forces

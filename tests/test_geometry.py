@@ -52,7 +52,7 @@ T = 80
 
 @pytest.fixture(scope="module")
 def replay():
-    """The C replay as plans.Replay holds one, and the force each step applied.
+    """The C replay as verify.Replay holds one, and the force each step applied.
 
     Returns:
       (m, qpos0, qvel0, qpos (T, nq), qvel (T, nv), ctrl (T, nu), stepped (T, 3)):

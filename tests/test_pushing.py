@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjstamp import plans, tasks
+from mjstamp import tasks, verify
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.skills import bank as bank_mod
@@ -86,8 +86,8 @@ def test_hand_written_plans_decode_to_the_sides_pushed(task):
         # block's top, and it drags the block by friction: not a push of a side.
         [("north", (0.01, 0.11)), ("south", (0.49, 0.40))],
     ])
-    replay = plans.simulate_c(task, theta)
-    decoded = plans.decode(task, replay, theta)
+    replay = verify.simulate_c(task, theta)
+    decoded = verify.decode(task, replay, theta)
     assert list(decoded.plan) == ["west,south", "south,west", "west", "north", "top"]
     assert decoded.ok.tolist() == [True, True, True, False, False]
 

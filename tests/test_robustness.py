@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from mjstamp import plans
+from mjstamp import verify
 from mjstamp.errors import MjstampError
 
 
 def _verified(task, n=600):
     """Verified plans of the tiny task, from uniform draws replayed in MuJoCo C."""
     theta = np.random.default_rng(0).uniform(-2, 2, (n, 2))
-    dec = task.build().decode(plans.simulate_c(task, theta), theta)
+    dec = task.build().decode(verify.simulate_c(task, theta), theta)
     return theta[dec.ok], dec.plan[dec.ok]
 
 
@@ -19,7 +19,7 @@ def test_zero_uncertainty_scores_every_verified_plan_one(tiny_task):
     task.uncertain("friction", spread=0.0)
     theta, plan = _verified(task)
     assert len(theta) > 5
-    rob = plans.robustness(task, theta, plan, samples=4)
+    rob = verify.robustness(task, theta, plan, samples=4)
     np.testing.assert_array_equal(rob.success, 1.0)
     np.testing.assert_array_equal(rob.same_plan, 1.0)
 
@@ -31,11 +31,11 @@ def test_edge_plan_scores_below_centred_and_seeds_reproduce(tiny_task):
     # and the one whose path passes nearest 0.097 m from it (success radius 0.1 m).
     angles = np.deg2rad(135) + np.linspace(-0.3, 0.3, 241)
     fan = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-    path = plans.simulate_c(task, fan).body_pos("puck")[..., :2]
+    path = verify.simulate_c(task, fan).body_pos("puck")[..., :2]
     miss = np.linalg.norm(path - np.array([-0.3, 0.3]), axis=-1).min(axis=1)
     theta = fan[[int(np.argmin(miss)), int(np.argmin(np.abs(miss - 0.097)))]]
-    one = plans.robustness(task, theta, samples=32, seed=3)
-    two = plans.robustness(task, theta, samples=32, seed=3)
+    one = verify.robustness(task, theta, samples=32, seed=3)
+    two = verify.robustness(task, theta, samples=32, seed=3)
     np.testing.assert_array_equal(one.success, two.success)
     assert one.success[0] == 1.0
     assert one.success[1] < one.success[0]
@@ -116,8 +116,8 @@ def test_robust_log_density_is_the_mean_cost_over_draws_and_cvar_the_worst(tiny_
     qpos0 = qpos0 + np.tile(draws.qpos_noise, (len(theta), 1))
     states = replay(problem.scene, qpos0, qvel0, ctrl, solver="grad",
                     models=draws.models * len(theta))
-    r = plans.Replay(problem, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
-    c = plans.cost_c(problem, r, th)
+    r = verify.Replay(problem, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
+    c = verify.cost_c(problem, r, th)
     c = c.reshape(len(theta), k)
     assert np.ptp(c, axis=1).min() > 0.05  # the draws matter to the cost
     np.testing.assert_allclose(-np.asarray(mean.logdensity(theta)[0]), c.mean(axis=1),

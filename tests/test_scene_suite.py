@@ -19,7 +19,7 @@ import pytest
 from mujoco.mjx._src import collision_driver
 from mujoco.mjx._src.types import GeomType
 
-from mjstamp import modes, plans
+from mjstamp import modes, verify
 from mjstamp.errors import MjstampError
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -131,8 +131,8 @@ def test_c_replays_decode_and_stay_stable(tasks, name):
     """A handful of uniform shots replay in MuJoCo C, stay finite and bounded, and decode."""
     task = _task(tasks, name)
     theta = modes.uniform_theta(task, 6, np.random.default_rng(0))
-    replay = plans.simulate_c(task, theta)
-    decoded = plans.decode(task, replay, theta)
+    replay = verify.simulate_c(task, theta)
+    decoded = verify.decode(task, replay, theta)
     assert np.isfinite(replay.qpos).all() and np.isfinite(replay.qvel).all()
     speed = np.linalg.norm(np.diff(replay.xpos, axis=1), axis=-1) / task.scene.m.opt.timestep
     assert speed.max() < 20.0  # no blow-up: every body stays below 20 m/s
@@ -148,7 +148,7 @@ def test_examples_reach_the_task_plans_they_promise(tasks, name):
     shots = examples.EXAMPLES[name]
     assert len({plan for _, plan in shots}) >= 2, "each scene has several modes"
     theta = np.array([t for t, _ in shots])
-    decoded = plans.decode(task, plans.simulate_c(task, theta), theta)
+    decoded = verify.decode(task, verify.simulate_c(task, theta), theta)
     assert decoded.ok.all()
     assert list(decoded.plan) == [plan for _, plan in shots]
 

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from mjstamp import plans, seeding
+from mjstamp import seeding, verify
 
 
 def test_seeding_is_reproducible_and_spread_over_task_plans(tiny_task):
@@ -20,13 +20,29 @@ def test_seeding_is_reproducible_and_spread_over_task_plans(tiny_task):
     # The screen found both task plans (straight, and off the wall), and the
     # particles start on each of them, not only on the most common one.
     assert set(report.task_plans) == {"0-goal", "1-goal"}
-    decoded = plans.decode(task, plans.simulate_c(task, theta), theta)
+    decoded = verify.decode(task, verify.simulate_c(task, theta), theta)
     assert {p for p, ok in zip(decoded.plan, decoded.ok, strict=True) if ok} == {
         "0-goal", "1-goal"}
     # A screen of 1 is the prior draw itself.
     prior, none = seeding.seed_particles(task, key, 8, screen=1)
     np.testing.assert_array_equal(prior, np.asarray(task.build().init(key, 8)))
     assert none.successes == 0
+
+
+def test_the_screen_hands_back_the_c_replay_of_the_particles_it_chose(tiny_task):
+    # Chunks of 16 of 256 candidates: the screen drops the states of candidates
+    # it can no longer choose between chunks, and keeps those of the chosen.
+    task = tiny_task(goal_pos="0.2 0.3 0", radius=0.06)
+    seeded = seeding.screen_particles(task, jax.random.key(3), 8, screen=32, chunk=16)
+    again = verify.simulate_c(task, seeded.particles)
+    for field in ("qpos", "qvel", "ctrl", "xpos", "site_xpos"):
+        got, want = getattr(seeded.replay, field), getattr(again, field)
+        assert got.dtype == want.dtype and np.array_equal(got, want), field
+    assert seeded.replay.distances.keys() == again.distances.keys()
+    for pair, d in again.distances.items():
+        np.testing.assert_array_equal(seeded.replay.distances[pair], d)
+    # Without a screen nothing was replayed.
+    assert seeding.screen_particles(task, jax.random.key(3), 8, screen=1).replay is None
 
 
 class _Box:
@@ -76,7 +92,7 @@ def test_screen_particles_hands_back_its_successes_by_task_plan(tiny_task):
     assert set(seeded.successes) == set(seeded.screen.task_plans) == {"0-goal", "1-goal"}
     for plan, members in seeded.successes.items():
         assert len(members) == seeded.screen.task_plans[plan]
-        decoded = plans.decode(task, plans.simulate_c(task, members), members)
+        decoded = verify.decode(task, verify.simulate_c(task, members), members)
         assert all(decoded.ok) and set(decoded.plan) == {plan}
 
 

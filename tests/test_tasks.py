@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mjstamp import plans, results, seeding, tasks
+from mjstamp import results, seeding, tasks, verify
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
@@ -99,8 +99,8 @@ POCKETING = {
 @pytest.mark.slow
 def test_billiards_decodes_hand_made_shots(billiards_task):
     shots = np.array([STRAIGHT, OFF_TOP, *POCKETING.values()])
-    for simulate in (plans.simulate_c, plans.simulate_mjx):
-        decoded = plans.decode(billiards_task, simulate(billiards_task, shots), shots)
+    for simulate in (verify.simulate_c, verify.simulate_mjx):
+        decoded = verify.decode(billiards_task, simulate(billiards_task, shots), shots)
         assert decoded.code[0] == "0000" and decoded.code[1] == "1000"
         assert not decoded.ok[:2].any()  # neither pockets the target
         assert list(decoded.plan[2:]) == list(POCKETING)
@@ -114,7 +114,7 @@ def test_billiards_contacts_match_mujoco_contact_list(billiards_task):
 
     m = billiards_task.scene.m
     shot = np.array([POCKETING["1000-bottom"]])
-    replay = plans.simulate_c(billiards_task, shot)
+    replay = verify.simulate_c(billiards_task, shot)
     d = mujoco.MjData(m)
     d.qvel[:2] = shot[0]
     cue, top = billiards_task.scene.geom("cue"), billiards_task.scene.geom("wall_top")
@@ -268,7 +268,7 @@ def test_free_joint_coordinates_and_spatial_goals():
     task.cost("up", costs.reach("ball", ["goal"], axes=(0, 1, 2)))
     task.success(costs.reaches("ball", {"goal": "goal"}, radius=0.1, axes=(0, 1, 2)))
     theta = np.array([[0.0, 0.0, 0.0, 0.0]])
-    replay = plans.simulate_c(task, theta)
+    replay = verify.simulate_c(task, theta)
     ok, _ = task.success_fn(replay)
     assert not ok[0]  # 0.9 m below the goal, though right under it in x-y
 

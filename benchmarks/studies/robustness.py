@@ -4,7 +4,7 @@ For each task and seed, a default solve (the task's registered settings, plus
 any `--set`) and the same solve with `robust=K` (`--robust`, every particle
 rolled out in K draws of the task's uncertainty, expected cost minimised).
 Every returned plan of both is then scored the same way: the share of M = 32
-perturbed MuJoCo C replays (`plans.robustness`, the default uncertainty, the
+perturbed MuJoCo C replays (`verify.robustness`, the default uncertainty, the
 solve's seed) in which it succeeds. A returned plan that fails in the nominal
 model is scored too (it usually scores near 0).
 
@@ -64,7 +64,7 @@ def _median(x) -> float | None:
 
 
 def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> dict:
-    from mjstamp import plans, tasks
+    from mjstamp import tasks, verify
     from mjstamp.scenes import uncertainty
     from mjstamp.solve import solve
 
@@ -76,12 +76,12 @@ def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> d
     wall = time.perf_counter() - started
     summary = result.summary()
     idx = np.flatnonzero(result.returned)
-    rob = plans.robustness(result.problem, result.theta[idx], result.verified.plan[idx],
+    rob = verify.robustness(result.problem, result.theta[idx], result.verified.plan[idx],
                            samples=SAMPLES, seed=seed)
     verified = result.verified.ok[idx]
     own = None
     if config.robust:  # the same plans on the K draws the robust solve optimised for
-        own = plans.robustness(result.problem, result.theta[idx], result.verified.plan[idx],
+        own = verify.robustness(result.problem, result.theta[idx], result.verified.plan[idx],
                                samples=config.robust, seed=seed,
                                stream=uncertainty.PLAN_STREAM).success
     return {
@@ -104,7 +104,7 @@ def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> d
 def _achievable(name: str, overrides: dict, shots: int, seed: int, declare: list[tuple],
                 chunk: int = 4096) -> dict:
     """Scores of every verified plan among `shots` uniform draws (the ceiling of any planner)."""
-    from mjstamp import modes, plans, tasks
+    from mjstamp import modes, tasks, verify
 
     task, _ = tasks.load(name, **overrides)
     for kind, spread in declare:
@@ -115,12 +115,12 @@ def _achievable(name: str, overrides: dict, shots: int, seed: int, declare: list
     thetas, plan, code = [], [], []
     for start in range(0, shots, chunk):
         theta = modes.uniform_theta(task, min(chunk, shots - start), rng)
-        decoded = plans.decode(problem, plans.simulate_c(problem, theta), theta)
+        decoded = verify.decode(problem, verify.simulate_c(problem, theta), theta)
         thetas.append(theta[decoded.ok])
         plan.append(decoded.plan[decoded.ok].astype(str))
         code.append(decoded.code[decoded.ok].astype(str))
     theta, plan, code = (np.concatenate(x) for x in (thetas, plan, code))
-    score = plans.robustness(problem, theta, plan, samples=SAMPLES, seed=seed).success
+    score = verify.robustness(problem, theta, plan, samples=SAMPLES, seed=seed).success
 
     def best(groups: np.ndarray) -> dict[str, float]:
         return {g: float(score[groups == g].max()) for g in sorted(set(groups))}

@@ -219,8 +219,9 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
 def _check(task, particles: int, seed: int) -> dict:
     """`mjstamp check` on the task's own particles: fidelity and AD against C's differences."""
     from mjstamp.scenes.check import check_task
+    from mjstamp.tasks import as_problem
 
-    report = check_task(task, particles=particles, seed=seed)
+    report = check_task(as_problem(task), particles=particles, seed=seed)
     keep = ("healthy", "problems", "judged_by", "physics_divergence_p95_m", "rel_err_median",
             "rel_err_p95", "model_rel_err_median", "nonfinite", "us_per_particle_step",
             "gradient", "iterations", "approximate_pairs")

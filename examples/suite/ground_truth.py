@@ -2,7 +2,7 @@
 
 For each suite scene, shots over the task's box are replayed in MuJoCo C with
 the scene's own solver settings (`mujoco.rollout`, all cores) and decoded
-exactly as solved plans are (`plans.decode(task, plans.simulate_c(task, θ), θ)`).
+exactly as solved plans are (`verify.decode(task, verify.simulate_c(task, θ), θ)`).
 Boxes of at most 3 coordinates are swept on a regular grid (`modes.sweep`),
 larger ones by seeded uniform Monte Carlo (`modes.monte_carlo`). Either way
 about `SHOTS` = 10⁵ shots, so a task plan occupying 0.1% of the box is seen

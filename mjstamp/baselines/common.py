@@ -1,7 +1,7 @@
 """What the baselines share: the found-plan tracker, candidate task plans, the constrained loss.
 
 Every baseline ends the way `solve` does: a plan counts when its MuJoCo C
-replay with the scene's own solver succeeds (`plans.simulate_c`, then the
+replay with the scene's own solver succeeds (`verify.simulate_c`, then the
 task's own `decode`), and its task plan is read off that replay. The tracker
 times the first verification of each distinct task plan, so a method's time to
 N task plans includes everything it did to get there (rollouts, gradients,
@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjstamp import plans as plans_mod
+from mjstamp import verify
 from mjstamp.errors import MjstampError
 from mjstamp.tasks.declaration import Kind
 from mjstamp.tasks.problem import Problem
@@ -106,16 +106,16 @@ class Tracker:
         """The target is reached, or the cap spent."""
         return self.finished_at is not None or self.elapsed() >= self.cap_s
 
-    def verify(self, theta: np.ndarray) -> plans_mod.Decoded:
+    def verify(self, theta: np.ndarray) -> verify.Decoded:
         """Replays θ (n, d) in MuJoCo C, records new verified task plans; returns the decode."""
         theta = np.asarray(theta, np.float64)
-        replay = plans_mod.simulate_c(self.problem, theta)
-        decoded = plans_mod.decode(self.problem, replay, theta)
+        replay = verify.simulate_c(self.problem, theta)
+        decoded = verify.decode(self.problem, replay, theta)
         self.rollouts += len(theta)
         self.record(decoded, theta, replay)
         return decoded
 
-    def record(self, decoded: plans_mod.Decoded, theta: np.ndarray, replay) -> list[str]:
+    def record(self, decoded: verify.Decoded, theta: np.ndarray, replay) -> list[str]:
         """Adds the successful, not yet found task plans of a decoded C replay."""
         now = self.elapsed()
         if self.finished_at is not None or now > self.cap_s:
@@ -125,7 +125,7 @@ class Tracker:
             plan = str(decoded.plan[i])
             if plan in self.found:
                 continue
-            cost = float(plans_mod.cost_c(self.problem, _rows(replay, [i]), theta[[i]])[0])
+            cost = float(verify.cost_c(self.problem, _rows(replay, [i]), theta[[i]])[0])
             code, actions = str(decoded.code[i]), list(decoded.actions[i])
             self.found[plan] = {
                 "task_plan": plan, "code": code, "symbolic": symbolic(code, actions),
@@ -150,9 +150,9 @@ class Tracker:
             rollouts=self.rollouts, settings=settings)
 
 
-def _rows(replay: plans_mod.Replay, idx) -> plans_mod.Replay:
+def _rows(replay: verify.Replay, idx) -> verify.Replay:
     """The replay of particles `idx` alone."""
-    return plans_mod.Replay(replay.problem, replay.qpos[idx], source=replay.source,
+    return verify.Replay(replay.problem, replay.qpos[idx], source=replay.source,
                             qvel=None if replay.qvel is None else replay.qvel[idx],
                             ctrl=None if replay.ctrl is None else replay.ctrl[idx])
 

@@ -21,7 +21,7 @@ over `starts` random starts. Their settings and why:
 cem scores its populations with the same MJX rollouts, forward only, at Γ(θ)
 (`rollouts="mjx"`, the default), and replays each population in MuJoCo C to
 verify it (counted in its time). With `rollouts="c"` it scores the C replays
-themselves (the task's costs on them, `plans.cost_c`): on a CPU the C forward
+themselves (the task's costs on them, `verify.cost_c`): on a CPU the C forward
 is several times cheaper than MJX's (1.4 us against 8-40 us per
 particle-step), so this is what a user without a GPU would do. Population 128
 (STAMP's particles), elites 10%, at most 20 generations per restart, restart
@@ -38,8 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjstamp import parallel
-from mjstamp import plans as plans_mod
+from mjstamp import parallel, verify
 from mjstamp.baselines.common import (
     BaselineResult,
     Tracker,
@@ -292,10 +291,10 @@ def run_cem(task, *, target: int | None = None, cap_s: float = 600.0, seed: int 
         mean, spread = rng.uniform(low, high), width / 2
         for _ in range(generations):
             x = np.clip(mean + spread * rng.standard_normal((population, len(low))), low, high)
-            replay = plans_mod.simulate_c(problem, x)
-            decoded = plans_mod.decode(problem, replay, x)
+            replay = verify.simulate_c(problem, x)
+            decoded = verify.decode(problem, replay, x)
             if score is None:
-                cost = plans_mod.cost_c(problem, replay, x)
+                cost = verify.cost_c(problem, replay, x)
             else:
                 cost = score(x)
                 tracker.rollouts += population

@@ -8,7 +8,7 @@ distances of geom pairs, what MJX cannot collide (`collisions`), the fidelity
 of the gradient model (`fidelity`) and the check of a scene (`check`).
 
 What it may import: mujoco, mujoco.mjx, jax, numpy, and of mjstamp only
-`errors` and `fileio`; never tasks, solvers or figures.
+`errors`, `fileio` and `kinematics`; never tasks, solvers or figures.
 """
 
 from mjstamp.scenes._mjx import mjx

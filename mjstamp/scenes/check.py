@@ -181,15 +181,15 @@ def check_scene(
                  tolerance=tolerance, progress=progress, calibrate=calibrate)
 
 
-def check_task(task, *, particles: int = 256, **kwargs) -> dict:
+def check_task(problem, *, particles: int = 256, **kwargs) -> dict:
     """`check` on a task's own particles (θ in its bounds, its horizon and inputs).
 
     Args:
-      task: a `Task` or its `Problem`.
+      problem: the task's `Problem` (`mjstamp.tasks.as_problem(task)`: scenes/
+        sits below tasks/ and takes the problem, not the declaration).
       particles: N random particles.
       **kwargs: as `check_scene` (seed, fd_eps, tolerance, progress, calibrate).
     """
-    problem = task.build() if hasattr(task, "build") else task
     return check(problem.scene, task_particles(problem), particles=particles, **kwargs)
 
 

@@ -43,6 +43,7 @@ import numpy as np
 
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import write_atomic
+from mjstamp.kinematics import poses
 from mjstamp.scenes.rollout import controls, replay
 
 CACHE = Path.home() / ".cache" / "mjstamp" / "fidelity"
@@ -71,16 +72,8 @@ def tracked_points(m: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
     at its own origin (a pendulum, a link of an arm) keeps its origin still
     however it swings, and a divergence read from origins alone is 0 there.
     """
-    n, T = qpos.shape[:2]
-    d = mujoco.MjData(m)
-    out = np.empty((n, T, m.nbody + m.ngeom, 3))
-    for i in range(n):
-        for t in range(T):
-            d.qpos[:] = qpos[i, t]
-            mujoco.mj_kinematics(m, d)
-            out[i, t, : m.nbody] = d.xipos
-            out[i, t, m.nbody :] = d.geom_xpos
-    return out
+    k = poses(m, qpos, ("xipos", "geom_xpos"))
+    return np.concatenate([k["xipos"], k["geom_xpos"]], axis=-2)
 
 
 def divergence(x_a: np.ndarray, x_b: np.ndarray) -> np.ndarray:
@@ -242,6 +235,7 @@ def calibrate(
     candidates: Sequence[tuple[str, int | None, int]] = CANDIDATES,
     cache: bool = True,
     progress: Callable[[str], None] | None = None,
+    reference: np.ndarray | None = None,
 ) -> Calibration:
     """The cheapest gradient-solver setting that follows the scene's own physics.
 
@@ -265,6 +259,9 @@ def calibrate(
       cache: read and write the result on disk (~/.cache/mjstamp/fidelity),
         keyed by the compiled model, the options, the inputs and the tolerance.
       progress: optional callable(str) for status lines.
+      reference: (n, T, nq) positions of these inputs replayed in MuJoCo C with
+        the scene's own solver (`replay(..., solver="scene")`), where the caller
+        has them (a solve's seeding screen); None replays them here.
 
     Returns:
       A `Calibration`.
@@ -288,7 +285,8 @@ def calibrate(
         except (ValueError, KeyError, TypeError):
             pass  # a corrupt entry is measured again and rewritten
     started = time.perf_counter()
-    reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
+    if reference is None:
+        reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
     x_ref = tracked_points(scene.m, reference)
     tried: list[Measurement] = []
     for gradient, iterations, ls in todo:

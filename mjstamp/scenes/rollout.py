@@ -12,6 +12,7 @@ import mujoco.rollout
 import numpy as np
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.kinematics import poses
 from mjstamp.parallel import local_device
 from mjstamp.scenes import gradsafe
 from mjstamp.scenes._mjx import mjx
@@ -304,29 +305,11 @@ def replay_model(
         out["ctrl"] = ctrl.copy()
     slow = [f for f in fields if f not in ("qpos", "qvel", "ctrl")]
     if slow:
-        out.update(_recompute(m, qpos, slow))
-    return out
-
-
-def _recompute(m, qpos, fields) -> dict[str, np.ndarray]:
-    """Poses of the states, which the C rollout does not store (kinematics)."""
-    n, T = qpos.shape[:2]
-    d = mujoco.MjData(m)
-    shapes = {
-        "xpos": (m.nbody, 3),
-        "xquat": (m.nbody, 4), "xmat": (m.nbody, 9), "geom_xpos": (m.ngeom, 3),
-        "geom_xmat": (m.ngeom, 9), "site_xpos": (m.nsite, 3),
-    }
-    out = {f: np.empty((n, T) + shapes[f]) for f in fields}
-    for i in range(n):
-        for t in range(T):
-            d.qpos[:] = qpos[i, t]
-            mujoco.mj_kinematics(m, d)
-            for f in fields:
-                out[f][i, t] = getattr(d, f).reshape(shapes[f])
-    for f in ("xmat", "geom_xmat"):
-        if f in out:
-            out[f] = out[f].reshape(n, T, -1, 3, 3)
+        # N.B. the C rollout stores states, not poses: kinematics gives them.
+        out.update(poses(m, qpos, slow))
+        for f in ("xmat", "geom_xmat"):
+            if f in out:
+                out[f] = out[f].reshape(n, T, -1, 3, 3)
     return out
 
 

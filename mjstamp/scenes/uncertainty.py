@@ -4,7 +4,7 @@ A task declares what it is unsure of (`Task.uncertain`): the friction of some
 geoms, the mass of some bodies, and so on, each with a spread. This module
 resolves those declarations against a scene once (names to ids, one line for
 a bad name or range) and draws perturbed `MjModel`s and initial positions
-from them, seeded, for the robustness score of `mjstamp.plans.robustness`.
+from them, seeded, for the robustness score of `mjstamp.verify.robustness`.
 
 Relative kinds scale a parameter by a factor 1 + ε: ε uniform in
 [−spread, spread] ("uniform", the default) or normal with standard deviation

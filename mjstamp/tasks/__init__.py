@@ -24,7 +24,7 @@ from typing import Any
 from mjstamp.config import SolveConfig
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable
-from mjstamp.tasks.problem import Decoded, Problem, Rollout
+from mjstamp.tasks.problem import Decoded, Poses, Problem, Rollout, as_problem
 from mjstamp.tasks.task import Task
 
 
@@ -233,11 +233,13 @@ __all__ = [
     "Entry",
     "Kind",
     "Option",
+    "Poses",
     "Problem",
     "Rollout",
     "Task",
     "Term",
     "Variable",
+    "as_problem",
     "default_config",
     "entries",
     "load",

@@ -2,7 +2,7 @@
 
 Costs are functions of a `Rollout` returning (n,) values; any JAX function of
 the rollout works the same way. Success predicates are functions of a
-`plans.Replay` (numpy) returning (ok (n,) bool, label (n,) str).
+`verify.Replay` (numpy) returning (ok (n,) bool, label (n,) str).
 
 Each factory here returns a `Bound`: its body, site and geom names are looked
 up once, in the scene, when `Task.cost` or `Task.success` is given it (hydrax

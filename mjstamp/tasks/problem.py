@@ -1,6 +1,6 @@
 """Problem: a Task's declaration compiled once into pure functions and static metadata.
 
-`task.build()` returns a `Problem`, an immutable value that `solve`, `plans`,
+`task.build()` returns a `Problem`, an immutable value that `solve`, `verify`,
 `modes`, `seeding`, `figures` and the baselines consume. Each function has one
 signature:
 
@@ -41,7 +41,39 @@ from mjstamp.tasks.declaration import Contact, Kind, Term, Variable, distance_fn
 FIELDS = ("qpos", "qvel", "xpos", "geom_xpos", "geom_xmat", "site_xpos")
 
 
-class Rollout:
+class Poses:
+    """Poses and contacts of n trajectories over T steps, by name.
+
+    What a cost's `Rollout` (MJX, traced) and a MuJoCo C `verify.Replay`
+    (numpy) both offer, so a success predicate or an action rule reads either.
+    A subclass sets `scene` and `traj` ({field: (n, T, ...)}, `FIELDS`) and
+    defines `signed_distance`.
+    """
+
+    scene: Scene
+    traj: dict
+
+    def signed_distance(self, geom1: str | int, geom2: str | int):
+        """(n, T) signed distance between two geoms (negative in penetration)."""
+        raise NotImplementedError
+
+    def body_pos(self, body: str | int):
+        """(n, T, 3) world position of a body."""
+        return self.traj["xpos"][:, :, self.scene.body(body)]
+
+    def site_pos(self, site: str | int):
+        """(n, T, 3) world position of a site."""
+        return self.traj["site_xpos"][:, :, self.scene.site(site)]
+
+    def contact(self, geom1: str | int, geom2: str | int):
+        """(n, T) whether two geoms touch at each step: signed distance < 0.
+
+        MuJoCo makes a contact exactly then for geoms without margin.
+        """
+        return self.signed_distance(geom1, geom2) < 0.0
+
+
+class Rollout(Poses):
     """What a cost sees: the batched trajectory, θ's variables and the symbols.
 
     Attributes:
@@ -72,14 +104,6 @@ class Rollout:
     def until_contact(self, geom1: str | int, geom2: str | int) -> jax.Array:
         """(n, T) mask of the steps up to and including the first contact."""
         return relax.first_contact_mask(self.signed_distance(geom1, geom2) <= 0.0)
-
-    def body_pos(self, body: str | int) -> jax.Array:
-        """(n, T, 3) world position of a body."""
-        return self.traj["xpos"][:, :, self.scene.body(body)]
-
-    def site_pos(self, site: str | int) -> jax.Array:
-        """(n, T, 3) world position of a site."""
-        return self.traj["site_xpos"][:, :, self.scene.site(site)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -441,7 +465,7 @@ class Problem:
         return actions
 
     def decode(self, replay, theta: np.ndarray) -> Decoded:
-        """Task plans read off a replay (`plans.Replay`): symbols, actions, success label."""
+        """Task plans read off a replay (`verify.Replay`): symbols, actions, success label."""
         n, T = replay.qpos.shape[:2]
         bits = np.zeros((n, len(self.contacts)), int)
         for k, c in enumerate(self.contacts):
@@ -470,6 +494,11 @@ class Problem:
     def describe(self) -> dict[str, Any]:
         """A JSON-ready summary of the declaration."""
         return dict(self.declaration)
+
+
+def as_problem(task) -> Problem:
+    """The `Problem` of a `Task` (`task.build()`), or the `Problem` itself."""
+    return task if isinstance(task, Problem) else task.build()
 
 
 def default_kernel(problem: Problem, weights: Mapping[str, float]):

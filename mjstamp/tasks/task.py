@@ -339,7 +339,7 @@ class Task:
         self.actions_fn = fn
 
     def success(self, fn: Callable) -> None:
-        """Sets the success predicate on a MuJoCo C replay; see `plans.Replay`.
+        """Sets the success predicate on a MuJoCo C replay; see `verify.Replay`.
 
         fn(replay) -> (ok (n,) bool, label (n,) str): whether each plan succeeds
         and a label that becomes part of its task plan (e.g. the pocket). A

@@ -7,13 +7,13 @@
 What it is for: showing the plans of a results directory (what `mjstamp solve
 --out` wrote) in 3-D, as `mjstamp view` does; it reads saved MuJoCo C states
 and never plans. The one simulation it shows, a plan's perturbed replays
-(`--perturbed`), comes from `plans.perturbed_replays`, the draws of the
+(`--perturbed`), comes from `verify.perturbed_replays`, the draws of the
 plan's robustness score.
 
 What it may import: mujoco, numpy, meshcat and its transport (zmq, umsgpack),
 the standard library, and of mjstamp only `geometry` (poses, colours and
 contact forces, shared with the PNG figures so the two cannot disagree),
-`results` (the results files and their schema), `plans` (perturbed replays),
+`results` (the results files and their schema), `verify` (perturbed replays),
 `fileio` and `errors`; not the solver, the tasks nor `figures`.
 
 References:

@@ -42,8 +42,7 @@ from meshcat.animation import Animation, AnimationClip, AnimationTrack
 from meshcat.commands import SetAnimation, SetObject, SetTransform
 from meshcat.visualizer import ViewerWindow
 
-from mjstamp import geometry
-from mjstamp import plans as plans_io
+from mjstamp import geometry, verify
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.fileio import write_atomic
 from mjstamp.results import Results, load_results
@@ -172,7 +171,7 @@ def _ghost_frames(m: mujoco.MjModel, results: Results, row: int, stride: int,
     """Poses of one plan in the first `count` perturbed replays of its robustness score."""
     tr = results.trajectories
     T = len(tr["qpos"][row])
-    reps = plans_io.perturbed_replays(
+    reps = verify.perturbed_replays(
         m, results.summary.get("robustness"), tr["qpos0"][row],
         tr["qvel0"][row] if "qvel0" in tr else np.zeros(m.nv),
         tr["ctrl"][row] if "ctrl" in tr else None, count, horizon=T,
@@ -281,7 +280,7 @@ def build_playback(
       max_fps: at most this many keyframes per second (states are subsampled).
       loop: repeat the whole timeline forever (else play it once).
       perturbed: with each plan, play this many of the perturbed replays behind
-        its robustness score (`plans.perturbed_replays`) as translucent copies of
+        its robustness score (`verify.perturbed_replays`) as translucent copies of
         the moving bodies; 0: none.
 
     Returns:

@@ -1,0 +1,199 @@
+"""Replays of particles (MuJoCo C or MJX) with their poses, decoded and costed.
+
+A `Replay` carries the states of n plans and the poses the planner reads off
+them (MJX kinematics in the scene's precision: body and site positions and
+the signed distances of the pairs decode reads), computed once when it is
+made; `decode`, success predicates and action rules read those.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjstamp.errors import MjstampError, valid_list
+from mjstamp.parallel import local_device
+from mjstamp.scenes import mjx
+from mjstamp.scenes.rollout import replay as replay_c
+from mjstamp.tasks.problem import FIELDS, Decoded, Poses, as_problem
+
+
+class Replay(Poses):
+    """States of n plans over T steps and their poses (numpy, float64).
+
+    Attributes:
+      qpos: (n, T, nq) positions after steps 1..T.
+      qvel: (n, T, nv) velocities after steps 1..T (C replays only, else None).
+      ctrl: (n, T, nu) controls applied at steps 1..T (C replays only, else None).
+      traj: {field: (n, T, ...)}: qpos, qvel (where known), xpos (body
+        positions) and site_xpos (site positions).
+      distances: {(g1, g2): (n, T)} signed distances of the pairs decode reads
+        (`Problem.contact_pairs`).
+    """
+
+    def __init__(self, problem, qpos: np.ndarray, source: str, *, qvel=None, ctrl=None):
+        problem = as_problem(problem)
+        self.problem = problem
+        self.scene = problem.scene
+        self.source = source
+        self.qpos = np.asarray(qpos, np.float64)
+        self.qvel = None if qvel is None else np.asarray(qvel, np.float64)
+        self.ctrl = None if ctrl is None else np.asarray(ctrl, np.float64)
+        traj, self.distances = poses(problem, self.qpos)
+        states = {"qpos": self.qpos, "qvel": self.qvel}
+        self.traj = {**{k: v for k, v in states.items() if v is not None}, **traj}
+
+    @property
+    def xpos(self) -> np.ndarray:
+        """(n, T, nbody, 3) body positions."""
+        return self.traj["xpos"]
+
+    @property
+    def site_xpos(self) -> np.ndarray:
+        """(n, T, nsite, 3) site positions."""
+        return self.traj["site_xpos"]
+
+    def signed_distance(self, geom1: str | int, geom2: str | int) -> np.ndarray:
+        """(n, T) signed distance between two geoms, for the pairs decode reads."""
+        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
+        key = (min(g1, g2), max(g1, g2))
+        if key not in self.distances:
+            raise MjstampError(f"a replay holds the distances of the geom pairs decode reads; "
+                               f"{key} is not one; valid: {valid_list(self.distances)}")
+        return self.distances[key]
+
+
+# Compiled per declaration and precision: kinematics and distances do not depend on
+# the gradient model's solver options, so a calibrated problem reuses them.
+_KINEMATICS: dict[tuple[str, Any], Any] = {}
+_STATE_COSTS: dict[tuple[str, Any], Any] = {}
+
+
+def _kinematics(problem):
+    """The planner's poses of one state: qpos (nq,) -> `mjx.Data` after kinematics."""
+    scene = problem.scene
+    d0 = mjx.make_data(scene.mx, device=local_device())
+    return lambda qpos: mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
+
+
+def _kinematics_fn(problem):
+    """jit(vmap): qpos (B, nq) -> body, site positions and pair distances."""
+    key = (problem.fingerprint, problem.scene.dtype)
+    if key not in _KINEMATICS:
+        kinematics = _kinematics(problem)
+        pairs = problem.contact_pairs()
+        fns = [problem.distance_fn(*p) for p in pairs]
+
+        def one(qpos):
+            d = kinematics(qpos)
+            dist = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else jnp.zeros(0)
+            return d.xpos, d.site_xpos, dist
+
+        _KINEMATICS[key] = (jax.jit(jax.vmap(one)), pairs)
+    return _KINEMATICS[key]
+
+
+def poses(problem, qpos: np.ndarray, chunk: int = 65536):
+    """The planner's poses of states: MJX kinematics in the scene's precision, float64.
+
+    Args:
+      problem: the `Problem`.
+      qpos: (n, T, nq) positions.
+      chunk: states per compiled call (one compiled shape for every chunk).
+
+    Returns:
+      ({"xpos": (n, T, nbody, 3), "site_xpos": (n, T, nsite, 3)},
+      {(g1, g2): (n, T) signed distance} for `Problem.contact_pairs`).
+    """
+    n, T, nq = qpos.shape
+    fn, pairs = _kinematics_fn(problem)
+    flat = qpos.reshape(-1, nq)
+    outs = []
+    for start in range(0, len(flat), chunk):
+        part = flat[start : start + chunk]
+        pad = chunk - len(part) if len(flat) > chunk else 0
+        if pad:
+            part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
+        out = jax.device_get(fn(jnp.asarray(part, problem.scene.dtype)))
+        outs.append([np.asarray(o[: len(part) - pad], np.float64) for o in out])
+    xpos, site_xpos, dist = (np.concatenate(parts) for parts in zip(*outs, strict=True))
+    traj = {"xpos": xpos.reshape(n, T, -1, 3), "site_xpos": site_xpos.reshape(n, T, -1, 3)}
+    dist = dist.reshape(n, T, len(pairs))
+    return traj, {p: dist[:, :, i] for i, p in enumerate(pairs)}
+
+
+def simulate_c(task, theta: np.ndarray) -> Replay:
+    """Replays particles θ (n, d) of a Task or Problem in MuJoCo C (the scene's own solver).
+
+    Discrete actions are taken at Γ(θ): the plan as decoded, not its relaxation.
+    """
+    problem = as_problem(task)
+    theta = np.asarray(theta, np.float64)
+    qpos0, qvel0, ctrl = problem.inputs(theta, xp=np)
+    ctrl = np.asarray(ctrl, np.float64)
+    states = replay_c(problem.scene, qpos0, qvel0, ctrl, fields=("qpos", "qvel"),
+                      solver="scene")
+    return Replay(problem, states["qpos"], source="mujoco", qvel=states["qvel"], ctrl=ctrl)
+
+
+def simulate_mjx(task, theta) -> Replay:
+    """Rolls particles θ (n, d) out in MJX (the planner's own gradient model)."""
+    problem = as_problem(task)
+    theta = jnp.asarray(theta, problem.scene.dtype)
+    rollout = problem.scene.rollout_fn(problem.horizon, fields=("qpos",))
+    qpos = rollout(*problem.inputs(theta, hard=True))["qpos"]
+    return Replay(problem, np.asarray(qpos), source="mjx")
+
+
+def _state_cost_fn(problem):
+    """jit: states (B, T, nq), (B, T, nv) and θ (B, d) -> the task's cost C (B,).
+
+    The task's own costs (`Problem.score`) on a trajectory it did not roll out
+    itself (a MuJoCo C replay). N.B. its poses are computed again inside this
+    jit, not read off the Replay: XLA fuses kinematics with the costs, and
+    costs of the Replay's own poses differ in the last bit (pushing: 4 of 40
+    costs by 3e-14), which would move the screen's order and the scores.
+    """
+    key = (problem.fingerprint, problem.scene.dtype)
+    if key not in _STATE_COSTS:
+        kinematics = _kinematics(problem)
+
+        def pose(qpos):
+            d = kinematics(qpos)
+            return {f: getattr(d, f) for f in FIELDS if f not in ("qpos", "qvel")}
+
+        def cost(qpos, qvel, theta):
+            traj = jax.vmap(jax.vmap(pose))(qpos)
+            traj.update(qpos=qpos, qvel=qvel)
+            _, values = problem.score(traj, problem.unpack(theta))
+            return problem.cost_total(values)
+
+        _STATE_COSTS[key] = jax.jit(cost)
+    return _STATE_COSTS[key]
+
+
+def cost_c(task, replay: Replay, theta: np.ndarray, *, chunk: int = 32) -> np.ndarray:
+    """(n,) the task's cost C(θ) on a MuJoCo C replay of θ (n, d), in chunks.
+
+    Non-finite costs (a state that blew up) are +inf.
+    """
+    problem = as_problem(task)
+    fn = _state_cost_fn(problem)
+    n = len(theta)
+    out = np.empty(n)
+    for start in range(0, n, chunk):
+        stop = min(start + chunk, n)
+        idx = np.arange(start, start + chunk).clip(max=n - 1)  # one compiled shape
+        dtype = problem.scene.dtype
+        value = fn(jnp.asarray(replay.qpos[idx], dtype), jnp.asarray(replay.qvel[idx], dtype),
+                   jnp.asarray(theta[idx], dtype))
+        out[start:stop] = np.asarray(value, np.float64)[: stop - start]
+    return np.where(np.isfinite(out), out, np.inf)
+
+
+def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:
+    """Task plans of a Task's or Problem's particles θ read off a replay (`Problem.decode`)."""
+    return as_problem(task).decode(replay, theta)
