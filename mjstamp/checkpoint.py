@@ -31,6 +31,7 @@ import numpy as np
 from mjstamp import __version__, parallel
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import probe, write_atomic
+from mjstamp.progress import Progress
 from mjstamp.svgd import LoopSnapshot, StampDiagnostics
 
 __all__ = ["FILENAME", "Checkpointer", "Interrupted", "describe", "fingerprint", "load",
@@ -181,16 +182,16 @@ class Checkpointer:
       meta: what `load` checks on resume (task, fingerprint, version, ...).
       every_s: seconds between checkpoints (0: after every iteration).
       resume_hint: the command that continues the solve, for the message.
-      say: status lines (or None).
+      progress: status lines (`mjstamp.progress`; False: none).
     """
 
     def __init__(self, out: str | Path, meta: Mapping[str, Any], *, every_s: float = 30.0,
-                 resume_hint: str = "", say: Callable[[str], None] | None = None):
+                 resume_hint: str = "", progress: Progress | bool = False):
         self.path = Path(out) / FILENAME
         self.meta = dict(meta)
         self.every_s = float(every_s)
         self.resume_hint = resume_hint
-        self.say = say or (lambda _msg: None)
+        self.say = Progress.of(progress, "checkpoint")
         self.signal: int | None = None
         self.saved = 0
         self._last = time.monotonic()

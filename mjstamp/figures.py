@@ -26,7 +26,6 @@ from __future__ import annotations
 import functools
 import io
 import math
-import sys
 import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -47,6 +46,7 @@ from tqdm.auto import tqdm
 from mjstamp import geometry
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import write_atomic
+from mjstamp.progress import Progress, ProgressLike
 
 DPI = 150
 FAILED_COLOR = "#b0b0b0"  # particles that are not returned, or fail in MuJoCo C
@@ -70,7 +70,7 @@ def save_figures(
     *,
     landscape: bool = True,
     grid: int | None = None,
-    progress: bool | None = None,
+    progress: ProgressLike = None,
     jit: Jit | None = None,
 ) -> list[Path]:
     """Writes the figures of a solve into `out`, each PNG atomically.
@@ -457,7 +457,7 @@ def _log_axis(ax, values: np.ndarray, *, decades: float = 6.0) -> None:
 
 
 def landscape_cost(
-    task, n: int, low, high, grid: int, *, progress: bool | None = None, jit: Jit | None = None
+    task, n: int, low, high, grid: int, *, progress: ProgressLike = None, jit: Jit | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The task's MJX cost C(θ) on a grid × grid lattice over a 2-D box.
 
@@ -492,10 +492,9 @@ def landscape_cost(
     points = np.concatenate([points, np.repeat(points[-1:], pad, axis=0)])
 
     fn = _cost_fn(task, n, jit)
-    show = sys.stderr.isatty() if progress is None else bool(progress)
     out = []
     for start in tqdm(range(0, len(points), n), desc=f"landscape {task.name}", unit="batch",
-                      disable=not show):
+                      disable=not Progress.of(progress).bar):
         batch = jnp.asarray(points[start : start + n], task.scene.dtype)
         out.append(np.asarray(jax.device_get(fn(batch)), np.float64))
     values = np.concatenate(out)[: grid * grid].reshape(grid, grid)
@@ -527,7 +526,7 @@ def default_grid(task, n: int) -> int:
     return int(np.clip(grid, 8, 400))
 
 
-def landscape_figure(result, *, grid: int | None = None, progress: bool | None = None,
+def landscape_figure(result, *, grid: int | None = None, progress: ProgressLike = None,
                      jit: Jit | None = None) -> Figure:
     """Particles over the cost landscape: initial, end of SVGD, end of SGD (Fig. 9).
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -40,6 +39,7 @@ from tqdm import tqdm
 
 from mjstamp import fileio, verify
 from mjstamp.errors import MjstampError
+from mjstamp.progress import Progress, ProgressLike
 
 CACHE = Path.home() / ".cache" / "mjstamp" / "modes"
 MIN_SHARE = 1e-3
@@ -89,19 +89,17 @@ def _write_cache(path: Path, result: dict, cache: bool) -> None:
         pass  # a read-only cache only costs time
 
 
-def _count_plans(task, theta: np.ndarray, *, chunk: int, progress: bool | None, desc: str):
+def _count_plans(task, theta: np.ndarray, *, chunk: int, progress, desc: str):
     """Replays θ (N, d) in chunks; returns (Counter of successful plans, codes, successes)."""
     found: Counter = Counter()
     codes: dict[str, str] = {}
     ok_total = 0
-    tty = sys.stderr.isatty()
-    show = tty if progress is None else progress
+    progress = Progress.of(progress).under("modes")
     starts = range(0, len(theta), chunk)
     every = max(1, len(starts) // 10)
-    for i, start in enumerate(tqdm(starts, desc=desc, unit="chunk", disable=not show)):
-        if progress is None and not tty and (i % every == 0):  # a log sees lines, not a bar
-            print(f"[modes] {desc}: {start}/{len(theta)} shots replayed in MuJoCo C",
-                  file=sys.stderr, flush=True)
+    for i, start in enumerate(tqdm(starts, desc=desc, unit="chunk", disable=not progress.bar)):
+        if progress.lines and (i % every == 0):  # a log sees lines, not a bar
+            progress(f"{desc}: {start}/{len(theta)} shots replayed in MuJoCo C")
         part = theta[start : start + chunk]
         decoded = verify.decode(task, verify.simulate_c(task, part), part)
         ok_total += int(decoded.ok.sum())
@@ -120,7 +118,7 @@ def _modes(found: Counter, codes: dict, shots: int) -> list[dict]:
     ]
 
 
-def sweep(task, *, grid: int = 200, chunk: int = 4096, progress: bool | None = None,
+def sweep(task, *, grid: int = 200, chunk: int = 4096, progress: ProgressLike = None,
           cache: bool = True, salt: str = "") -> dict:
     """Replays a grid over the task's box in MuJoCo C; returns its modes.
 
@@ -176,7 +174,7 @@ def uniform_theta(task, n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def monte_carlo(task, *, shots: int = 100_000, seed: int = 0, chunk: int = 2048,
-                progress: bool | None = None, cache: bool = True, salt: str = "") -> dict:
+                progress: ProgressLike = None, cache: bool = True, salt: str = "") -> dict:
     """Replays `shots` uniform draws over θ's bounds in MuJoCo C; returns its modes.
 
     Works for any dimension and any kind of variable. The draws depend on

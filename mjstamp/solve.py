@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import sys
 import time
 import warnings
 from collections import Counter
@@ -33,6 +32,7 @@ from mjstamp import checkpoint as checkpoint_mod
 from mjstamp import parallel, results, seeding, svgd, verify
 from mjstamp.config import SolveConfig
 from mjstamp.errors import FidelityWarning, MjstampError
+from mjstamp.progress import QUIET, Progress, ProgressLike
 from mjstamp.scenes import contacts, fidelity
 from mjstamp.tasks import Problem, Task, as_problem
 from mjstamp.tracecache import cached_jit
@@ -163,7 +163,7 @@ class SolveResult:
         return results.to_arrays(self)
 
     def save(self, out: str | Path, *, figures: bool = True, coverage: dict | None = None,
-             progress: bool | None = None) -> list[Path]:
+             progress: ProgressLike = None) -> list[Path]:
         """Writes the results directory: plans.json, .npz files, scene.mjb[, figures].
 
         The files of the format are `results.write`'s (atomic, plans.json last;
@@ -204,20 +204,12 @@ def problem_jit(problem: Problem):
     return jit
 
 
-def _say(progress: bool | None):
-    """Status lines on stderr unless progress is False (a terminal, a log or a pipe)."""
-    show = True if progress is None else bool(progress)
-    return (lambda msg: print(f"[solve] {msg}", file=sys.stderr, flush=True)) if show else (
-        lambda _msg: None
-    )
-
-
-def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, say=None,
+def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, progress=False,
               reference: verify.Replay | None = None):
     """Calibrates the gradient model on particles θ; returns (problem, Calibration).
 
     `reference`: θ's MuJoCo C replay where the caller has it (the seeding
-    screen's); None replays θ here.
+    screen's); None replays θ here. `progress` (`mjstamp.progress`) hears the verdict.
 
     Raises:
       MjstampError: no setting within budget is faithful and
@@ -235,8 +227,7 @@ def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, say=None
             "allow_unfaithful=true) to solve anyway, or a larger fidelity_tolerance or "
             "max_solver_iterations"
         )
-    if say is not None:
-        say(calibration.message())
+    Progress.of(progress, "solve")(calibration.message())
     after = calibration.after
     scene = problem.scene.with_grad_options(
         gradient=after.gradient, iterations=after.iterations, ls_iterations=after.ls_iterations
@@ -360,7 +351,7 @@ def _judge(problem: Problem, theta: np.ndarray, qpos_mjx: np.ndarray, qpos_c: np
                           horizon=problem.horizon)
 
 
-def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress, *,
+def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress: Progress, *,
                devices: int = 1, checkpointer=None, resume=None, successes=None):
     widths = _box_widths(problem)
     discrete = {}
@@ -413,13 +404,14 @@ def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, res
         say(f"resuming from the checkpoint of {checkpoint_mod.describe(found)}")
     results.check_writable(directory)
     checkpointer = checkpoint_mod.Checkpointer(directory, meta, every_s=every_s,
-                                               resume_hint=resume_hint, say=say)
+                                               resume_hint=resume_hint, progress=say)
     return checkpointer, snap
 
 
 def solve(
     task: Task | Problem, config: Mapping[str, Any] | SolveConfig | None = None, *,
-    seed: int = 0, progress: bool | None = None, checkpoint_dir: str | Path | None = None,
+    seed: int = 0, progress: ProgressLike = None,
+    checkpoint_dir: str | Path | None = None,
     resume: bool = False, checkpoint_every_s: float = 30.0, resume_hint: str = "",
 ) -> SolveResult:
     """Runs STAMP on a task, then decodes, verifies, repairs and groups the plans.
@@ -430,7 +422,8 @@ def solve(
         the defaults.
       seed: makes the run reproducible.
       progress: True: tqdm bar and status lines on stderr; None: the bar on a
-        terminal, status lines in any case; False: nothing.
+        terminal, status lines in any case; False: nothing; or a callable
+        taking the lines, or a `mjstamp.progress.Progress`.
       checkpoint_dir: a results directory to write `checkpoint.npz` into
         while STAMP runs (`mjstamp.checkpoint`): every `checkpoint_every_s`
         seconds (0: every iteration) and on SIGINT / SIGTERM, after which the
@@ -464,14 +457,14 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
         raise MjstampError(f"seed={seed!r} must be an integer in 0..{MAX_SEED}")
     if progress is None and not parallel.is_lead():
-        progress = False  # N.B. one of several processes: process 0 speaks for all
+        progress = QUIET  # N.B. one of several processes: process 0 speaks for all
     problem = as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     devices = parallel.shard_count(cfg.devices)
     if jax.process_count() > 1 and devices != jax.device_count():
         raise MjstampError(f"devices={devices}: a solve over {jax.process_count()} processes "
                            f"shards over all their {jax.device_count()} devices (devices=None)")
-    say, clock = _say(progress), {"start": time.perf_counter()}
+    say, clock = Progress.of(progress, "solve"), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
                                         checkpoint_every_s, resume_hint, say, devices)
     theta0, screen, successes, replay0 = _initial_particles(problem, cfg, seed, say)
@@ -479,7 +472,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     clock["screen"] = time.perf_counter()
     calibration, report = None, {"calibrated": False}
     if cfg.calibrate:
-        problem, calibration = calibrate(problem, theta0_np, cfg, say=say, reference=replay0)
+        problem, calibration = calibrate(problem, theta0_np, cfg, progress=say, reference=replay0)
         report = calibration.as_dict()
     evaluate = _Evaluator(problem, theta0_np)
     if calibration is not None:
@@ -488,7 +481,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     clock["calibrate"] = time.perf_counter()
     cpu = time.process_time()
     with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
-        stamp = _run_stamp(problem, cfg, theta0, seed, progress, devices=devices,
+        stamp = _run_stamp(problem, cfg, theta0, seed, say, devices=devices,
                            checkpointer=checkpointer, resume=snap, successes=successes)
     clock["stamp"] = time.perf_counter()
     clock["stamp_cpu"] = time.process_time() - cpu

@@ -31,9 +31,16 @@ def test_every_svgd_file_imports_only_the_stdlib_jax_numpy_optax_tqdm_and_itself
                 top in sys.stdlib_module_names
                 or top in ALLOWED
                 or module == "mjstamp.svgd"
+                or module == "mjstamp.progress"
                 or module.startswith("mjstamp.svgd.")
             )
             assert ok, f"{path.name} imports {module}"
+
+
+def test_the_progress_reporter_the_engine_may_use_imports_only_the_stdlib():
+    path = SVGD.parent / "progress.py"
+    assert all(m.split(".")[0] in sys.stdlib_module_names or m == "__future__"
+               for m in _imported_modules(path)), _imported_modules(path)
 
 
 def test_importing_svgd_loads_neither_mujoco_nor_relax():

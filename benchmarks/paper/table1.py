@@ -50,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     mjstamp.configure(devices=devices, strict_devices=False)
     from mjstamp import tasks
     from mjstamp.baselines.compare import compare, format_table, parse_methods
+    from mjstamp.progress import Progress
 
     methods = parse_methods(args.methods)
     out = {}
@@ -57,8 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         overrides = {**TASKS[name], **tasks.parse_overrides(name, args.set), "devices": None}
         rows = compare(lambda n=name, o=overrides: tasks.load(n, **o), methods=methods,
                        seeds=args.seeds, cap_s=args.cap,
-                       say=lambda msg, n=name: print(f"[table1 {n}] {msg}", file=sys.stderr,
-                                                     flush=True))
+                       progress=Progress(True, f"table1 {name}"))
         out[name] = rows
         if not args.json:
             print(format_table(name, rows), flush=True)

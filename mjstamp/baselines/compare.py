@@ -19,6 +19,7 @@ import numpy as np
 from mjstamp.baselines import METHODS, run
 from mjstamp.config import SolveConfig
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.progress import Progress
 
 __all__ = ["ALL", "compare", "format_table", "parse_methods"]
 
@@ -42,7 +43,8 @@ def _check(seeds, cap_s) -> None:
 
 
 def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int = 3,
-            cap_s: float = 600.0, solve_config=None, say=None, warm_up: bool = True) -> dict:
+            cap_s: float = 600.0, solve_config=None, progress=False,
+            warm_up: bool = True) -> dict:
     """Times every method to STAMP's distinct verified task plans, over `seeds` seeds.
 
     Args:
@@ -52,7 +54,8 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
       seeds: seeds 0..seeds-1.
       cap_s: each baseline's wall-time cap per seed.
       solve_config: overrides of the solve settings (None: the task's own).
-      say: status lines (or None).
+      progress: status lines (`mjstamp.progress`: a callable, a `Progress`, True;
+        False: none).
       warm_up: run each method once briefly first, so that no method's
         first seed pays its compiles (STAMP's included).
 
@@ -65,7 +68,7 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
 
     methods = parse_methods(methods)
     _check(seeds, cap_s)
-    say = say or (lambda _msg: None)
+    say = Progress.of(progress, "compare")
     task, config = task_factory()
     if solve_config:
         base = config.as_dict() if isinstance(config, SolveConfig) else dict(config or {})

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 
 from mjstamp.cli.arguments import parse_seed
 from mjstamp.errors import MjstampError
+from mjstamp.progress import Progress
 
 #: Most solver iterations `check --iterations` takes (MuJoCo's own default is 100).
 MAX_SOLVER_ITERATIONS = 10_000
@@ -54,7 +54,7 @@ def run(args) -> int:
     from mjstamp.scenes.check import CheckSpec, check_scene, check_task
 
     options = _gradient_options(args)
-    say = (lambda msg: print(f"[check] {msg}", file=sys.stderr)) if not args.quiet else None
+    say = Progress(False if args.quiet else True, "check")
     # N.B. an explicit model is judged as given; otherwise the one a solve would calibrate.
     common = dict(particles=args.particles, seed=args.seed, tolerance=args.tolerance,
                   progress=say, calibrate=not options)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
 
 from mjstamp.cli.arguments import parse_count, parse_devices, parse_seconds, task_options
 
@@ -45,10 +44,8 @@ def run(args) -> int:
     if args.devices is not None:
         overrides["devices"] = parallel.shard_count(args.devices)
     tasks.load(args.task, **overrides)  # N.B. a bad task or setting fails before any work
-    say = None if args.quiet else (lambda msg: print(f"[compare] {msg}", file=sys.stderr,
-                                                     flush=True))
     rows = compare(lambda: tasks.load(args.task, **overrides), methods=methods,
-                   seeds=args.seeds, cap_s=args.cap, say=say)
+                   seeds=args.seeds, cap_s=args.cap, progress=not args.quiet)
     if args.json:
         print(json.dumps({args.task: rows}))
     else:

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjstamp.errors import MjstampError
+from mjstamp.progress import Progress
 from mjstamp.scenes import fidelity
 from mjstamp.scenes.rollout import replay, set_columns
 from mjstamp.scenes.scene import Scene
@@ -155,7 +156,7 @@ def check_scene(
     seed: int = 0,
     fd_eps: float = 1e-6,
     tolerance: float | None = None,
-    progress=None,
+    progress=False,
     calibrate: bool = True,
 ) -> dict:
     """Measures the fidelity and gradient health of a bare scene; see the module docstring.
@@ -169,7 +170,8 @@ def check_scene(
       fd_eps: central-difference step (float64, MuJoCo C).
       tolerance: physics divergence allowed to 95% of the particles, metres;
         default `fidelity.default_tolerance(scene)`.
-      progress: optional callable(str) for status lines.
+      progress: status lines (`mjstamp.progress`: a callable, a `Progress`, True;
+        False: none).
       calibrate: judge the gradient model a solve would use (`fidelity.calibrate`
         on these particles) rather than the scene's configured one.
 
@@ -201,7 +203,7 @@ def check(
     seed: int = 0,
     fd_eps: float = 1e-6,
     tolerance: float | None = None,
-    progress=None,
+    progress=False,
     calibrate: bool = True,
 ) -> dict:
     """Measures fidelity and gradient health on the particles `draws` describes.
@@ -226,7 +228,7 @@ def check(
     """
     if particles < 1:
         raise MjstampError(f"particles={particles} must be >= 1")
-    say = progress or (lambda _: None)
+    say = Progress.of(progress, "check")
     tolerance = fidelity.default_tolerance(scene) if tolerance is None else float(tolerance)
     if draws.dim == 0:
         raise MjstampError(f"scene {scene.name!r} has no joints or actuators to vary")

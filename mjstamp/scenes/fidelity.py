@@ -35,7 +35,7 @@ import dataclasses
 import hashlib
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import mujoco
@@ -44,6 +44,7 @@ import numpy as np
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import write_atomic
 from mjstamp.kinematics import poses
+from mjstamp.progress import Progress, ProgressLike
 from mjstamp.scenes.rollout import controls, replay
 
 CACHE = Path.home() / ".cache" / "mjstamp" / "fidelity"
@@ -234,7 +235,7 @@ def calibrate(
     max_iterations: int | None = None,
     candidates: Sequence[tuple[str, int | None, int]] = CANDIDATES,
     cache: bool = True,
-    progress: Callable[[str], None] | None = None,
+    progress: ProgressLike = False,
     reference: np.ndarray | None = None,
 ) -> Calibration:
     """The cheapest gradient-solver setting that follows the scene's own physics.
@@ -258,7 +259,8 @@ def calibrate(
       candidates: (gradient, iterations or None, ls_iterations) in order of cost.
       cache: read and write the result on disk (~/.cache/mjstamp/fidelity),
         keyed by the compiled model, the options, the inputs and the tolerance.
-      progress: optional callable(str) for status lines.
+      progress: status lines (`mjstamp.progress`: a callable, a `Progress`, True;
+        False: none).
       reference: (n, T, nq) positions of these inputs replayed in MuJoCo C with
         the scene's own solver (`replay(..., solver="scene")`), where the caller
         has them (a solve's seeding screen); None replays them here.
@@ -266,7 +268,7 @@ def calibrate(
     Returns:
       A `Calibration`.
     """
-    say = progress or (lambda _: None)
+    say = Progress.of(progress, "fidelity")
     tolerance = default_tolerance(scene) if tolerance is None else float(tolerance)
     if not tolerance > 0:
         raise MjstampError(f"fidelity tolerance={tolerance} must be > 0 (metres)")

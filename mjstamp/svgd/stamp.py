@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
@@ -25,6 +24,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from mjstamp.progress import QUIET, Progress, ProgressLike
 from mjstamp.svgd import guards
 from mjstamp.svgd._checks import check_particles
 from mjstamp.svgd._jacobian import JacobianMode, check_mode
@@ -368,7 +368,7 @@ def run_stamp(
     sgd_logdensity_fn: LogDensityFn | None = None,
     svgd_optimizer: optax.GradientTransformation | None = None,
     sgd_optimizer: optax.GradientTransformation | None = None,
-    progress: bool | None = None,
+    progress: ProgressLike = None,
     jit: Callable[[Callable, Any, jax.Array, str], Callable] | None = None,
     redraw: Callable[[jax.Array, int], jax.Array] | None = None,
     checkpoint: Callable[[Callable[[], LoopSnapshot]], None] | None = None,
@@ -396,7 +396,8 @@ def run_stamp(
         Adam(config.sgd_learning_rate).
       progress: show a tqdm bar; None shows it when stderr is a terminal and
         prints a status line per phase and every tenth of it otherwise (a log
-        or a pipe).
+        or a pipe); or a callable taking those lines, or a `Progress`
+        (`mjstamp.progress`), whose lines read "[stamp] ...".
       jit: how the steps' halves are compiled, jit(fn, name, *example_args)
         -> compiled fn, with name "svgd-evaluate", "svgd-update",
         "sgd-evaluate" or "sgd-update" (the SGD phase reuses the SVGD phase's
@@ -439,10 +440,8 @@ def run_stamp(
         logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
         svgd_optimizer, sgd_optimizer, particles.shape[1],
     )  # fmt: skip
-    tty = sys.stderr.isatty()
-    show = tty if progress is None else bool(progress)
-    loop = _Loop(config, jit, n=particles.shape[0], show=show,
-                 lines=progress is None and not tty, redraw=redraw, checkpoint=checkpoint)
+    loop = _Loop(config, jit, n=particles.shape[0], progress=Progress.of(progress, "stamp"),
+                 redraw=redraw, checkpoint=checkpoint)
     carry = _Carry.init(key, particles.shape[0], backtrack=config.backtrack)
     if resume is not None:
         carry = loop.restore(resume, particles.shape, carry)
@@ -530,7 +529,7 @@ class _Loop:
     """
 
     def __init__(
-        self, config: StampConfig, jit, *, n: int, show: bool, lines: bool,
+        self, config: StampConfig, jit, *, n: int, progress: Progress,
         redraw=None, checkpoint=None,
     ):
         self.checkpoint = checkpoint
@@ -541,15 +540,12 @@ class _Loop:
         self.jit = jit
         self.n = n
         # N.B. without a terminal tqdm writes nothing a log can show: say lines instead.
-        self.say = (
-            (lambda msg: print(f"[stamp] {msg}", file=sys.stderr, flush=True)) if lines
-            else (lambda _msg: None)
-        )
+        self.say = progress.under("stamp") if progress.lines else QUIET
         self.bar = tqdm(
             total=config.svgd_max_iters + config.sgd_max_iters,
             desc="STAMP",
             unit="it",
-            disable=not show,
+            disable=not progress.bar,
         )
         self.evaluations: dict[int, tuple] = {}  # id(step.evaluate) -> (it, compiled)
 

@@ -49,6 +49,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError
+from mjstamp.progress import Progress
 from mjstamp.scenes import Scene
 from mjstamp.scenes.scene import package_model_path
 from mjstamp.skills import pushing as skills
@@ -100,7 +101,6 @@ def _skills_arguments(parser) -> None:
 def _skills_command(args) -> int:
     """`mjstamp skills`: record the demonstrations, fit and save the skill bank."""
     import json  # noqa: PLC0415
-    import sys  # noqa: PLC0415
     from pathlib import Path  # noqa: PLC0415
 
     from mjstamp.skills import bank as bank_mod  # noqa: PLC0415
@@ -108,9 +108,8 @@ def _skills_command(args) -> int:
     out = Path(args.out) if args.out else skills.DEFAULT_BANK
     scene = Scene.shipped("pushing")
     setup = skills.PushSetup.from_scene(scene)
-    say = (lambda msg: print(f"[skills] {msg}", file=sys.stderr)) if not args.quiet else None
     demos = skills.record_all(scene, setup)
-    bank = skills.fit_bank(scene, setup, demos=demos, progress=say)
+    bank = skills.fit_bank(scene, setup, demos=demos, progress=Progress(not args.quiet, "skills"))
     path = bank_mod.save(bank, out)
     errors = skills.fit_errors(scene, setup, bank, demos=demos)
     if args.json:
