@@ -140,8 +140,9 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
 
     monkeypatch.setattr(solve_mod, "cached_jit", spy)
     task = tiny_task()
-    config = {"particles": 8, "svgd_max_iters": 15, "sgd_max_iters": 15, "min_iters": 5,
-              "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05, "rescue_window": 3}
+    config = {"particles": 8, "stamp": {"svgd_max_iters": 15, "sgd_max_iters": 15, "min_iters": 5,
+                                        "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05,
+                                        "rescue_window": 3}}
     result = solve(task, config, seed=0, progress=False)
     # Two functions roll the scene out (issue 12): the evaluation both STAMP phases share
     # (θ is 2-D: both differentiate forward mode) and the final evaluation.
