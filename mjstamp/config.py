@@ -365,7 +365,7 @@ class SolveConfig:
             elif key in FLAT_NAMES and key not in valid:
                 _deprecated(key, FLAT_NAMES[key], stacklevel=2)
                 settings[FLAT_NAMES[key]] = value
-            elif isinstance(value, _GROUPS.get(key, (type(None),))[0]):
+            elif key in _GROUPS and isinstance(value, _GROUPS[key][0]):
                 settings.update({f"{key}.{k}": v for k, v in
                                  _group_dict(key, value).items()})
             else:
@@ -373,8 +373,7 @@ class SolveConfig:
         for key in settings:
             if key not in valid:
                 options = valid + sorted(ignore)
-                close = difflib.get_close_matches(str(key), options, n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                hint = _did_you_mean(str(key), options)
                 raise MjstampError(f"unknown solve setting {key!r}{hint}; valid: "
                                    f"{valid_list(options, limit=60)}")
         base = base or cls()
@@ -400,6 +399,16 @@ class SolveConfig:
         return {"particles": self.particles, **flat, "devices": self.devices}
 
 
+def _did_you_mean(key: str, options: list[str]) -> str:
+    """' (did you mean 'stamp.svgd_max_iters'?)' for "svgd_iters": a key's last part counts too."""
+    by_last = {option.rsplit(".", 1)[-1]: option for option in reversed(options)}
+    close = difflib.get_close_matches(key, options, n=1)
+    if not close:
+        close = [by_last[m] for m in difflib.get_close_matches(key.rsplit(".", 1)[-1],
+                                                                list(by_last), n=1)]
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def _group(name: str, value, changes: Mapping[str, Any]):
     """Group `name` as given (`value`), with `changes` laid over it; errors name "name.field"."""
     if not changes:
@@ -409,8 +418,7 @@ def _group(name: str, value, changes: Mapping[str, Any]):
     for key in changes:
         if key not in known:
             options = [f"{name}.{k}" for k in known]
-            close = difflib.get_close_matches(f"{name}.{key}", options, n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            hint = _did_you_mean(f"{name}.{key}", options)
             raise MjstampError(f"unknown solve setting {name + '.' + str(key)!r}{hint}; "
                                f"valid: {valid_list(options)}")
     try:
