@@ -148,7 +148,7 @@ def screen_particles(
 
 
 def auto_cost_scale(screen: Screen | None) -> float:
-    """β of `SolveConfig.screen.cost_scale` "auto": max(1, ln M / (median − min)) of the screen's costs.
+    """β of `screen.cost_scale` "auto": max(1, ln M / (median − min)) of the screen's costs.
 
     With β the best of M candidates stands at least ln M nats above the
     typical one in the log posterior −β·C: the odds a region of 1/M of the
