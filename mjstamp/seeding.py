@@ -174,7 +174,7 @@ def _unreachable_depth(sizes: list[int], n: int) -> int:
 
 
 def auto_cost_scale(screen: Screen | None) -> float:
-    """β of `SolveConfig.cost_scale` "auto": max(1, ln M / (median − min)) of the screen's costs.
+    """β of `screen.cost_scale` "auto": max(1, ln M / (median − min)) of the screen's costs.
 
     With β the best of M candidates stands at least ln M nats above the
     typical one in the log posterior −β·C: the odds a region of 1/M of the

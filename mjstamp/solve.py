@@ -60,7 +60,7 @@ def _scale_columns(widths: np.ndarray) -> optax.GradientTransformation:
     return optax.GradientTransformation(lambda _: optax.EmptyState(), update)
 
 
-def _optimizer(rate: float | None, step: float, widths: np.ndarray):
+def box_optimizer(rate: float | None, step: float, widths: np.ndarray):
     """Adam with ε in θ units (`rate`) or `step` of each coordinate's box width."""
     if rate is not None:
         return optax.inject_hyperparams(optax.adam)(learning_rate=rate)
@@ -98,19 +98,19 @@ class SolveResult:
       returned: (n,) plans whose MJX rollout succeeds.
       repaired: (n,) returned plans that failed in MuJoCo C and were repaired.
       source: (n,) where each particle's plan comes from: "final", or "svgd" /
-        "initial" when an earlier state was kept (`SolveConfig.keep_visited`).
+        "initial" when an earlier state was kept (`SolveConfig.verify.keep_visited`).
       fidelity: the calibration (`Calibration.as_dict`) plus the divergence of
         MJX rollouts from their C replays, initial and final particles.
       screen: the seeding screen (`seeding.Screen.as_dict`) or None.
-      rescue: with `SolveConfig.rescue_window` on, the re-draws and the
+      rescue: with `SolveConfig.stamp.rescue_window` on, the re-draws and the
         task-plan counts (C replays) of the initial and final particles; None
         when off.
       loss: mean and median cost (MJX) of the particles at the start, at the
         end of SVGD and at the end, and the SVGD phase's share of the decrease
-        (`_loss_report`).
+        (`loss_report`).
       devices: how many devices the particles were sharded over.
       robustness: each verified plan's score under the task's uncertain physics
-        (`_robustness`), or None (`SolveConfig.robustness_samples` = 0).
+        (`_robustness`), or None (`SolveConfig.verify.robustness_samples` = 0).
       compiles: the XLA compiles the solve did (`_Compiles.report`: count and
         seconds of those >= 0.5 s, the largest by function).
     """
@@ -213,19 +213,20 @@ def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, progress
 
     Raises:
       MjstampError: no setting within budget is faithful and
-        `cfg.allow_unfaithful` is False (one line with the divergence).
+        `cfg.calibration.allow_unfaithful` is False (one line with the divergence).
     """
     qpos0, qvel0, ctrl = problem.inputs(np.asarray(theta, np.float64), xp=np)
     calibration = fidelity.calibrate(
         problem.scene, qpos0, qvel0, np.asarray(ctrl, np.float64),
-        tolerance=cfg.fidelity_tolerance, max_iterations=cfg.max_solver_iterations,
+        tolerance=cfg.calibration.fidelity_tolerance,
+        max_iterations=cfg.calibration.max_solver_iterations,
         reference=None if reference is None else reference.qpos,
     )
-    if not calibration.faithful and not cfg.allow_unfaithful:
+    if not calibration.faithful and not cfg.calibration.allow_unfaithful:
         raise MjstampError(
-            f"{calibration.message()}; set allow_unfaithful=True (CLI: --set "
-            "allow_unfaithful=true) to solve anyway, or a larger fidelity_tolerance or "
-            "max_solver_iterations"
+            f"{calibration.message()}; set calibration.allow_unfaithful=True (CLI: --set "
+            "calibration.allow_unfaithful=true) to solve anyway, or a larger "
+            "calibration.fidelity_tolerance or calibration.max_solver_iterations"
         )
     Progress.of(progress, "solve")(calibration.message())
     after = calibration.after
@@ -244,16 +245,15 @@ def mjx_divergence(problem: Problem, theta: np.ndarray, qpos_mjx: np.ndarray) ->
 
 
 def _stamp_config(cfg: SolveConfig, problem: Problem, seed: int) -> svgd.StampConfig:
-    widths = _box_widths(problem)
-    motion = cfg.motion_tol if cfg.motion_tol is not None else 1e-4 * float(widths.mean())
-    return svgd.StampConfig(
-        svgd_learning_rate=cfg.svgd_learning_rate or cfg.svgd_step,
-        sgd_learning_rate=cfg.sgd_learning_rate or cfg.sgd_step,
-        svgd_max_iters=cfg.svgd_max_iters, sgd_max_iters=cfg.sgd_max_iters,
-        min_iters=cfg.min_iters, window=cfg.window, rtol=cfg.rtol, motion_tol=motion,
-        seed=seed, jacobian=cfg.jacobian, rescue_window=cfg.rescue_window,
-        nonfinite_redraw=cfg.nonfinite_redraw, backtrack=cfg.backtrack,
-    )
+    """`cfg.stamp` with the solve's seed and motion_tol resolved (None: 1e-4 of the mean width).
+
+    Its learning rates stay as given: None means the optimizers `_run_stamp`
+    passes, scaled per coordinate by the box (`_optimizer`).
+    """
+    motion = cfg.stamp.motion_tol
+    if motion is None:
+        motion = 1e-4 * float(_box_widths(problem).mean())
+    return dataclasses.replace(cfg.stamp, seed=seed, motion_tol=motion)
 
 
 class _Evaluator:
@@ -291,12 +291,12 @@ def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
     and handed to calibration, the check of MJX and the evaluation of θ0.
     """
     key = jax.random.key(seed)
-    if cfg.screen <= 1:
+    if cfg.screen.candidates <= 1:
         theta0 = problem.init(key, cfg.particles)
         replay = verify.simulate_c(problem, np.asarray(theta0, np.float64))
         return theta0, None, {}, replay
-    say(f"screening {cfg.screen * cfg.particles} candidates in MuJoCo C")
-    seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen)
+    say(f"screening {cfg.screen.candidates * cfg.particles} candidates in MuJoCo C")
+    seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen.candidates)
     # N.B. the candidates are draws in the scene's precision: the cast is exact, and
     # the screen's replay is that of θ0.
     theta0 = jnp.asarray(seeded.particles, problem.scene.dtype)
@@ -305,16 +305,16 @@ def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
 
 def _posterior(problem: Problem, cfg: SolveConfig, screen, seed: int, say) -> Problem:
     """The problem STAMP samples: its cost scale β (`cost_scale`) and robust planning set."""
-    auto = cfg.cost_scale == "auto"
-    scale = seeding.auto_cost_scale(screen) if auto else float(cfg.cost_scale)
+    auto = cfg.screen.cost_scale == "auto"
+    scale = seeding.auto_cost_scale(screen) if auto else float(cfg.screen.cost_scale)
     if scale != 1:
         problem = problem.with_cost_scale(scale)
         say(f"posterior log ρ = −β·C with cost_scale β = {scale:.3g}"
             + (" (auto: from the screen's costs)" if auto else ""))
-    if cfg.robust:
-        problem = problem.with_robust(cfg.robust, seed, cfg.robust_cvar)
-        say(f"robust planning: every particle in {cfg.robust} draws of the uncertain physics"
-            + ("" if cfg.robust_cvar == 1 else f", CVaR at {cfg.robust_cvar:g}"))
+    if cfg.robust.draws:
+        problem = problem.with_robust(cfg.robust.draws, seed, cfg.robust.cvar)
+        say(f"robust planning: every particle in {cfg.robust.draws} draws of the uncertain physics"
+            + ("" if cfg.robust.cvar == 1 else f", CVaR at {cfg.robust.cvar:g}"))
     return problem
 
 
@@ -366,14 +366,14 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress: 
     logdensity = parallel.shard_particles(problem.logdensity, devices)
     result = svgd.run_stamp(
         logdensity, theta0, problem.kernel, _stamp_config(cfg, problem, seed),
-        svgd_optimizer=_optimizer(cfg.svgd_learning_rate, cfg.svgd_step, widths),
-        sgd_optimizer=_optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths),
+        svgd_optimizer=box_optimizer(cfg.stamp.svgd_learning_rate, cfg.stamp.svgd_step, widths),
+        sgd_optimizer=box_optimizer(cfg.stamp.sgd_learning_rate, cfg.stamp.sgd_step, widths),
         progress=progress,
         jit=lambda fn, name, *example: jit(
             parallel.replicate_outputs(fn, devices),
             f"stamp-{name} {cfg} on {devices}", *example),
-        redraw=seeding.Redraw(problem, successes or {}, near=cfg.rescue_near,
-                              jitter=cfg.svgd_step),
+        redraw=seeding.Redraw(problem, successes or {}, near=cfg.screen.rescue_near,
+                              jitter=cfg.stamp.svgd_step),
         checkpoint=checkpointer, resume=resume,
         **discrete,
     )
@@ -392,7 +392,7 @@ def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, res
     if isinstance(every_s, bool) or not isinstance(every_s, (int, float)) or not every_s >= 0:
         raise MjstampError(f"checkpoint_every_s={every_s!r} must be a number >= 0 (seconds)")
     # N.B. the device count resolved: a resume on other devices would shard otherwise.
-    settings = {"task": dict(problem.settings), "solve": {**cfg.as_dict(), "devices": devices}}
+    settings = {"task": dict(problem.settings), "solve": {**cfg.flat_dict(), "devices": devices}}
     meta = {"task": problem.name, "version": checkpoint_mod.__version__,
             "fingerprint": checkpoint_mod.fingerprint(problem.fingerprint, settings, seed),
             "seed": seed, "settings": settings}
@@ -471,7 +471,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     theta0_np = np.asarray(theta0, np.float64)
     clock["screen"] = time.perf_counter()
     calibration, report = None, {"calibrated": False}
-    if cfg.calibrate:
+    if cfg.calibration.enabled:
         problem, calibration = calibrate(problem, theta0_np, cfg, progress=say, reference=replay0)
         report = calibration.as_dict()
     evaluate = _Evaluator(problem, theta0_np)
@@ -493,9 +493,9 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     # N.B. θ0's C replay is the one made before STAMP: replayed once per solve.
     visited = {"svgd": (svgd_theta, evaluate(svgd_theta)),
                "initial": (theta0_np, evaluate(theta0_np, replay0))}
-    loss = _loss_report({"initial": visited["initial"][1].cost,
+    loss = loss_report({"initial": visited["initial"][1].cost,
                          "svgd": visited["svgd"][1].cost, "final": outcome.cost})
-    if cfg.keep_visited:
+    if cfg.verify.keep_visited:
         theta, source = _keep_visited(theta, outcome, visited)
         if (source != "final").any():
             outcome = evaluate(theta)
@@ -578,11 +578,12 @@ def _repair(problem, cfg, theta, returned, outcome, evaluate, seed, say):
     """Returned plans that fail in MuJoCo C, refined there; (θ, repaired (n,), outcome)."""
     repaired = np.zeros(len(theta), bool)
     failed = np.flatnonzero(returned & ~outcome.verified.ok)
-    if not (cfg.repair and len(failed)):
+    if not (cfg.verify.repair and len(failed)):
         return theta, repaired, outcome
     say(f"repairing {len(failed)} returned plans that fail in MuJoCo C")
     fix = verify.repair(problem, theta[failed], outcome.predicted.plan[failed],
-                           rounds=cfg.repair_rounds, samples=cfg.repair_samples, seed=seed)
+                        rounds=cfg.verify.repair_rounds, samples=cfg.verify.repair_samples,
+                        seed=seed)
     if fix.repaired.any():
         theta = theta.copy()
         theta[failed[fix.repaired]] = fix.theta[fix.repaired]
@@ -599,13 +600,13 @@ def _robustness(problem, cfg, theta, verified, plan, seed, say) -> dict | None:
       "same_plan", "cost_median", "cost_std"}: the last four (n,) arrays, NaN
       where a particle is not a verified plan.
     """
-    if not cfg.robustness_samples:
+    if not cfg.verify.robustness_samples:
         return None
     idx = np.flatnonzero(verified)
     say(f"scoring {len(idx)} verified plans under uncertain physics "
-        f"({cfg.robustness_samples} perturbed MuJoCo C replays each)")
-    rob = verify.robustness(problem, theta[idx], plan[idx], samples=cfg.robustness_samples,
-                               seed=seed)
+        f"({cfg.verify.robustness_samples} perturbed MuJoCo C replays each)")
+    rob = verify.robustness(problem, theta[idx], plan[idx],
+                            samples=cfg.verify.robustness_samples, seed=seed)
     out = {"samples": rob.samples, "seed": rob.seed, "seconds": rob.seconds,
            "rollouts": rob.rollouts, "uncertain": rob.uncertain, "declared": rob.declared}
     for name in ("success", "same_plan", "cost_median", "cost_std"):
@@ -626,10 +627,10 @@ def _plan_counts(decoded: verify.Decoded) -> dict[str, int]:
 def _rescue_report(problem, cfg: SolveConfig, stamp, initial: Outcome,
                    outcome: Outcome) -> dict | None:
     """Re-draws of the stall rescue and the task plans (C) before and after; None when off."""
-    if not cfg.rescue_window:
+    if not cfg.stamp.rescue_window:
         return None
     initial = initial.verified
-    return {"window": cfg.rescue_window, "redraws": int(stamp.rescued.sum()),
+    return {"window": cfg.stamp.rescue_window, "redraws": int(stamp.rescued.sum()),
             "particles_redrawn": int((stamp.rescued > 0).sum()),
             "task_plan_counts": {"initial": _plan_counts(initial),
                                  "final": _plan_counts(outcome.verified)}}
@@ -668,7 +669,7 @@ def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int, theta
     return out
 
 
-def _loss_report(costs: dict[str, np.ndarray]) -> dict:
+def loss_report(costs: dict[str, np.ndarray]) -> dict:
     """Mean and median cost (MJX, actions at Γ) at the start, the end of SVGD and the end.
 
     Over the particles whose cost is finite at all three; `svgd_share` is the

@@ -15,7 +15,7 @@ from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 
 ROOT = Path(__file__).resolve().parent.parent
-SMALL = {"particles": 8, "sgd_max_iters": 40}
+SMALL = {"particles": 8, "stamp.sgd_max_iters": 40}
 SETTINGS = {"enumerate": {"starts": 8}, "blocking": {"starts": 8}, "cem": {"population": 32}}
 
 
@@ -169,7 +169,7 @@ def test_every_package_is_installed():
     (["compare", "billiards", "--cap", "0"], "cap 0 must be a finite number of seconds"),
     (["compare", "billiards", "--cap", "nan"], "must be a finite number"),
     (["compare", "nosuch"], "unknown task 'nosuch'"),
-    (["compare", "billiards", "--set", "svgd_max_iters=x"], "expected int"),
+    (["compare", "billiards", "--set", "stamp.svgd_max_iters=x"], "expected int"),
 ])
 def test_bad_compare_flags_are_one_line(argv, needle, capsys):
     assert main(argv) == 2
@@ -183,8 +183,8 @@ def test_table1_runs_on_a_tiny_setting():
 
     proc = subprocess.run(
         [sys.executable, "-m", "benchmarks.paper.table1", "--tasks", "billiards", "--seeds", "1",
-         "--cap", "20", "--devices", "1", "--set", "particles=8", "--set", "svgd_max_iters=3",
-         "--set", "sgd_max_iters=3", "--set", "screen=1", "--json"],
+         "--cap", "20", "--devices", "1", "--set", "particles=8", "--set", "stamp.svgd_max_iters=3",
+         "--set", "stamp.sgd_max_iters=3", "--set", "screen.candidates=1", "--json"],
         capture_output=True, text=True, timeout=1500, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = json.loads(proc.stdout.strip().splitlines()[-1])["billiards"]

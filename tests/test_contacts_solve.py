@@ -70,8 +70,8 @@ def test_box_box_gradients_are_those_of_c():
 def test_default_solve_takes_the_paddle_without_a_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error", FidelityWarning)
-        result = solve(paddle_task(), {"particles": 16, "svgd_max_iters": 10,
-                                       "sgd_max_iters": 10, "min_iters": 5}, seed=0,
+        result = solve(paddle_task(), {"particles": 16, "stamp.svgd_max_iters": 10,
+                                       "stamp.sgd_max_iters": 10, "stamp.min_iters": 5}, seed=0,
                        progress=False)
     fid = result.summary()["fidelity"]
     assert fid["mjx_initial"]["judged_by"] == "tolerance"

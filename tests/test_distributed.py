@@ -28,7 +28,7 @@ else:
 import jax
 from conftest import make_tiny_task
 from mjstamp.solve import solve
-cfg = {{"particles": 7, "svgd_max_iters": 6, "sgd_max_iters": 6, "min_iters": 100}}
+cfg = {{"particles": 7, "stamp": {{"svgd_max_iters": 6, "sgd_max_iters": 6, "min_iters": 100}}}}
 s = solve(make_tiny_task(), cfg, seed=0, progress=False).summary()
 print(json.dumps({{"devices": s["devices"], "processes": jax.process_count(),
                   "verified": s["verified_plans"], "task_plans": s["task_plans"],

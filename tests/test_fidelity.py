@@ -88,7 +88,8 @@ def slide_task():
 
 def test_solve_refuses_an_unfaithful_scene_before_it_starts():
     with pytest.raises(MjstampError) as e:
-        solve(slide_task(), {"particles": 8, "max_solver_iterations": 1}, progress=False)
+        solve(slide_task(), {"particles": 8, "calibration.max_solver_iterations": 1},
+              progress=False)
     msg = str(e.value)
     assert "\n" not in msg and "cannot be made faithful" in msg and "allow_unfaithful" in msg
 
@@ -97,18 +98,21 @@ def test_solve_config_names_unknown_and_bad_settings():
     with pytest.raises(MjstampError) as e:
         SolveConfig.from_dict({"svgd_iters": 3})
     msg = str(e.value)
-    assert "'svgd_iters'" in msg and "did you mean 'svgd_max_iters'" in msg
+    assert "'svgd_iters'" in msg and "did you mean 'stamp.svgd_max_iters'" in msg
     assert "valid:" in msg and "particles" in msg and "\n" not in msg
     assert SolveConfig.from_dict({"horizon": 5}, ignore={"horizon": 5}) == SolveConfig()
-    for bad in ({"particles": 1}, {"svgd_step": 0}, {"repair": "yes"}, {"jacobian": "x"},
-                {"svgd_max_iters": 2.5}, {"fidelity_tolerance": -1.0}, {"rescue_near": 1.5},
-                {"rescue_near": float("nan")}, {"rescue_near": True}, {"cost_scale": 0},
-                {"cost_scale": "hot"}, {"cost_scale": True}, {"cost_scale": float("inf")}):
-        with pytest.raises(MjstampError, match=next(iter(bad))):
+    for bad in ({"particles": 1}, {"stamp.svgd_step": 0}, {"verify.repair": "yes"},
+                {"stamp.jacobian": "x"}, {"stamp.svgd_max_iters": 2.5},
+                {"calibration.fidelity_tolerance": -1.0}, {"screen.rescue_near": 1.5},
+                {"screen.rescue_near": float("nan")}, {"screen.rescue_near": True},
+                {"screen.cost_scale": 0}, {"screen.cost_scale": "hot"},
+                {"screen.cost_scale": True}, {"screen.cost_scale": float("inf")}):
+        with pytest.raises(MjstampError, match=next(iter(bad)).replace(".", r"\.")):
             SolveConfig.from_dict(bad)
-    assert SolveConfig(cost_scale=2.5).cost_scale == 2.5 and SolveConfig().cost_scale == "auto"
+    assert SolveConfig(screen={"cost_scale": 2.5}).screen.cost_scale == 2.5
+    assert SolveConfig().screen.cost_scale == "auto"
     # Caps a user would accept, not 1000 + 1000.
-    assert SolveConfig().svgd_max_iters + SolveConfig().sgd_max_iters <= 200
+    assert SolveConfig().stamp.svgd_max_iters + SolveConfig().stamp.sgd_max_iters <= 200
 
 
 @pytest.mark.slow

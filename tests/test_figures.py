@@ -17,11 +17,11 @@ from mjstamp.solve import solve
 
 CONFIG = {
     "particles": 8,
-    "svgd_learning_rate": 0.1,
-    "sgd_learning_rate": 0.05,
-    "svgd_max_iters": 4,
-    "sgd_max_iters": 4,
-    "min_iters": 2,
+    "stamp.svgd_learning_rate": 0.1,
+    "stamp.sgd_learning_rate": 0.05,
+    "stamp.svgd_max_iters": 4,
+    "stamp.sgd_max_iters": 4,
+    "stamp.min_iters": 2,
 }
 
 

@@ -26,19 +26,23 @@ def test_random_command_lines_never_crash():
 @pytest.mark.parametrize("text, want", [("False", False), ("false", False), ("0", False),
                                         ("no", False), ("True", True), ("on", True)])
 def test_set_bool_means_what_it_says(text, want):
-    assert parse_overrides("billiards", [f"keep_visited={text}"])["keep_visited"] is want
+    key = "verify.keep_visited"
+    assert parse_overrides("billiards", [f"{key}={text}"])[key] is want
 
 
 @pytest.mark.parametrize("text, want", [("2.5", 2.5), ("3", 3.0), ("auto", "auto")])
 def test_set_cost_scale_takes_a_number_or_auto(text, want):
     # N.B. billiards has a setting of its own named beta (its soft indicators'):
     # the solve setting is cost_scale, and reaches SolveConfig from any task.
-    assert parse_overrides("billiards", [f"cost_scale={text}"])["cost_scale"] == want
+    key = "screen.cost_scale"
+    assert parse_overrides("billiards", [f"{key}={text}"])[key] == want
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["solve", "billiards", "--set", "cost_scale=0"], "cost_scale=0.0 must be a number > 0"),
-    (["solve", "billiards", "--set", "cost_scale=hot"], "cost_scale='hot' must be a number > 0"),
+    (["solve", "billiards", "--set", "screen.cost_scale=0"],
+     "screen.cost_scale=0.0 must be a number > 0"),
+    (["solve", "billiards", "--set", "screen.cost_scale=hot"],
+     "screen.cost_scale='hot' must be a number > 0"),
     (["solve", "billiards", "--set", "particles=1"], "particles=1 must be an integer >= 2"),
     (["solve", "billiards", "--set", "particles=100000000"], "must be at most 65536"),
     (["solve", "billiards", "--seed", "-1"], "seed -1 must be in 0.."),

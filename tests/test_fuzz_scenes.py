@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from mjstamp.errors import MjstampError  # noqa: E402
 from mjstamp.scenes import Scene  # noqa: E402
-from mjstamp.scenes.check import CheckSpec, _parameterisation  # noqa: E402
+from mjstamp.scenes.check import CheckSpec, parameterisation  # noqa: E402
 from tests.stress.fuzz import (  # noqa: E402 - after the path set-up above
     CHECK_ARGS,
     build_scene,
@@ -104,7 +104,7 @@ def test_check_varies_unnamed_joints():
     # Found by the fuzzer: `check` of a scene whose joints have no names (as a
     # hand-written scene often has) refused it, "has no joints or actuators to vary".
     scene = Scene(_scene(joints='<joint type="slide"/><joint type="hinge" axis="0 1 0"/>'))
-    draws = _parameterisation(scene, CheckSpec(horizon=5))
+    draws = parameterisation(scene, CheckSpec(horizon=5))
     assert draws.dim == 2
 
 

@@ -20,8 +20,8 @@ from conftest import make_tiny_task
 from mjstamp.solve import solve
 out = {{"devices": len(jax.devices())}}
 for k in (1, 2):
-    cfg = {{"particles": 7, "svgd_max_iters": 6, "sgd_max_iters": 6, "min_iters": 100,
-           "devices": k}}
+    cfg = {{"particles": 7, "devices": k,
+           "stamp": {{"svgd_max_iters": 6, "sgd_max_iters": 6, "min_iters": 100}}}}
     s = solve(make_tiny_task(), cfg, seed=0, progress=False).summary()
     out[k] = {{"plans": s["plans"], "task_plans": s["task_plans"],
               "verified": s["verified_plans"]}}

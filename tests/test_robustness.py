@@ -138,13 +138,13 @@ def test_a_robust_solve_records_its_draws_and_keys_its_traces_by_them(tiny_task,
     from mjstamp import solve as solve_mod
     from mjstamp.solve import problem_jit, solve
 
-    config = {"particles": 8, "svgd_max_iters": 4, "sgd_max_iters": 4, "min_iters": 100,
-              "robust": 2, "robustness_samples": 4}
+    config = {"particles": 8, "stamp": {"svgd_max_iters": 4, "sgd_max_iters": 4, "min_iters": 100},
+              "robust.draws": 2, "verify.robustness_samples": 4}
     result = solve(tiny_task(), config, seed=0, progress=False)
     summary = result.summary()
     assert summary["robust_planning"]["samples"] == 2
     assert "geom_friction" in summary["robust_planning"]["fields"]
-    assert summary["config"]["solve"]["robust"] == 2
+    assert summary["config"]["solve"]["robust"]["draws"] == 2
     one, two = result.problem, result.problem.with_robust(2, seed=1)
     assert one.robust.key() != two.robust.key()
     assert one.robust.key() == result.problem.with_robust(2, seed=0).robust.key()
@@ -157,9 +157,9 @@ def test_a_robust_solve_records_its_draws_and_keys_its_traces_by_them(tiny_task,
 
 
 @pytest.mark.parametrize(("setting", "expect"), [
-    ({"robust": -1}, "robust=-1 must be an integer >= 0"),
-    ({"robust": 4, "robust_cvar": 0}, "robust_cvar=0 must be a number in (0, 1]"),
-    ({"robust": 4, "robust_cvar": 1.5}, "robust_cvar=1.5 must be a number in (0, 1]"),
+    ({"robust.draws": -1}, "robust.draws=-1 must be an integer >= 0"),
+    ({"robust": {"draws": 4, "cvar": 0}}, "robust.cvar=0 must be a number in (0, 1]"),
+    ({"robust.draws": 4, "robust.cvar": 1.5}, "robust.cvar=1.5 must be a number in (0, 1]"),
 ])
 def test_bad_robust_settings_give_one_line(setting, expect):
     from mjstamp.config import SolveConfig

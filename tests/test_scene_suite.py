@@ -189,7 +189,8 @@ def test_scene_suite_runs_end_to_end(tmp_path):
     """benchmarks/studies/scene_suite.py on the smallest scene, tiny settings, prints its JSON."""
     cmd = [sys.executable, str(ROOT / "benchmarks" / "studies" / "scene_suite.py"), "--scenes",
            "pendulum_bells", "--particles", "4", "--shots", "200", "--json",
-           "--set", "svgd_max_iters=2", "--set", "sgd_max_iters=2", "--set", "min_iters=1"]
+           "--set", "stamp.svgd_max_iters=2", "--set", "stamp.sgd_max_iters=2",
+           "--set", "stamp.min_iters=1"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, check=True)
     report = json.loads(out.stdout)
     (row,) = report["scenes"]

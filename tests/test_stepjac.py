@@ -13,7 +13,7 @@ import pytest
 
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene, stepjac
-from mjstamp.scenes.check import _finite_differences, _relative_errors
+from mjstamp.scenes.check import finite_differences, relative_errors
 
 BALL = """
 <mujoco model="ball">
@@ -66,10 +66,10 @@ def case():
 
 def test_gradient_matches_central_differences_of_c(case):
     scene, theta = case["scene"], case["theta"]
-    fd = _finite_differences(scene, case["to_inputs"], theta, case["c1"], case["c2"], 1e-6,
+    fd = finite_differences(scene, case["to_inputs"], theta, case["c1"], case["c2"], 1e-6,
                              "scene")
     for key in ("sweep", "sweep[c]"):  # MJX's solution at C's states, and C's own
-        rel = _relative_errors(case["grads"][key], fd, np.ones(N, bool))
+        rel = relative_errors(case["grads"][key], fd, np.ones(N, bool))
         # Measured 6e-10 median, 1e-9 max: the differences' own floor at eps 1e-6
         # (float64). The bound leaves three orders for other CPUs' rounding.
         assert np.median(rel) < 1e-6 and rel.max() < 1e-5, key
@@ -114,7 +114,7 @@ def test_jacobians_at_other_states_are_caught(case):
     gq, gv, gu, _ = stepjac.input_gradients(scene, late, case["objective"])
     g = np.asarray(stepjac.pullback(lambda th: case["to_inputs"](th, jnp), case["theta"],
                                     gq, gv, gu))
-    rel = _relative_errors(g, case["grads"]["sweep"], np.ones(N, bool))
+    rel = relative_errors(g, case["grads"]["sweep"], np.ones(N, bool))
     assert np.median(rel) > 1e-3
 
 

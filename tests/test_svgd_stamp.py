@@ -202,11 +202,11 @@ def test_has_converged(means, moves, expected):
     [
         (
             lambda: StampConfig(svgd_learning_rate=0.0),
-            r"svgd_learning_rate \(step size\) must be",
+            r"svgd_learning_rate must be a float > 0",
         ),
         (
             lambda: StampConfig(sgd_learning_rate=-1e-3),
-            r"sgd_learning_rate \(step size\) must be",
+            r"sgd_learning_rate must be a float > 0",
         ),
         (lambda: StampConfig(window=0), r"window must be an integer >= 1"),
         (

@@ -34,8 +34,8 @@ def test_table2_runs_on_a_tiny_setting(tmp_path):
     saved = tmp_path / "table2.json"
     proc = subprocess.run(
         [sys.executable, "-m", "benchmarks.paper.table2", "--tasks", "billiards", "--particles",
-         "8", "16", "--seeds", "2", "--devices", "1", "--set", "svgd_max_iters=3", "--set",
-         "sgd_max_iters=3", "--set", "screen=1", "--save", str(saved), "--json"],
+         "8", "16", "--seeds", "2", "--devices", "1", "--set", "stamp.svgd_max_iters=3", "--set",
+         "stamp.sgd_max_iters=3", "--set", "screen.candidates=1", "--save", str(saved), "--json"],
         capture_output=True, text=True, timeout=1500, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])

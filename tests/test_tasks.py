@@ -140,8 +140,9 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
 
     monkeypatch.setattr(solve_mod, "cached_jit", spy)
     task = tiny_task()
-    config = {"particles": 8, "svgd_max_iters": 15, "sgd_max_iters": 15, "min_iters": 5,
-              "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05, "rescue_window": 3}
+    config = {"particles": 8, "stamp": {"svgd_max_iters": 15, "sgd_max_iters": 15, "min_iters": 5,
+                                        "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05,
+                                        "rescue_window": 3}}
     result = solve(task, config, seed=0, progress=False)
     # Two functions roll the scene out (issue 12): the evaluation both STAMP phases share
     # (θ is 2-D: both differentiate forward mode) and the final evaluation.
@@ -239,19 +240,19 @@ def test_format_table_text_and_markdown():
 
 
 def test_loss_report_by_hand():
-    from mjstamp.solve import _loss_report
+    from mjstamp.solve import loss_report
 
     nan = float("nan")
     costs = {"initial": np.array([10.0, 8.0, nan, 6.0]), "svgd": np.array([7.0, 5.0, 1.0, 3.0]),
              "final": np.array([1.0, 2.0, 0.0, 3.0])}
-    out = _loss_report(costs)  # particle 2 is left out: not finite at the start
+    out = loss_report(costs)  # particle 2 is left out: not finite at the start
     assert out["particles"] == 3
     assert out["mean"] == {"initial": 8.0, "svgd": 5.0, "final": 2.0}
     assert out["median"] == {"initial": 8.0, "svgd": 5.0, "final": 2.0}
     assert out["svgd_share"] == 0.5  # (8 - 5) / (8 - 2)
     costs["final"] = np.array([9.0, 9.0, 0.0, 9.0])  # the mean rose: no share to speak of
-    assert _loss_report(costs)["svgd_share"] is None
-    assert _loss_report({k: np.full(2, nan) for k in costs})["mean"]["final"] is None
+    assert loss_report(costs)["svgd_share"] is None
+    assert loss_report({k: np.full(2, nan) for k in costs})["mean"]["final"] is None
 
 
 def test_free_joint_coordinates_and_spatial_goals():

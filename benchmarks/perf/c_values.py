@@ -198,14 +198,14 @@ def run_scene(name: str, *, particles: int, repeats: int, seed: int, fd_eps: flo
         cost[f"c+vjp[{s}]"] = common + us[f"vjp_{s}"]
 
     say(f"{name}: central differences in MuJoCo C ({4 * draws.dim * particles} rollouts)")
-    fd = check._finite_differences(scene, draws.to_inputs, theta, c1, c2, fd_eps, "scene")
-    fd10 = check._finite_differences(scene, draws.to_inputs, theta, c1, c2, 10 * fd_eps, "scene")
+    fd = check.finite_differences(scene, draws.to_inputs, theta, c1, c2, fd_eps, "scene")
+    fd10 = check.finite_differences(scene, draws.to_inputs, theta, c1, c2, 10 * fd_eps, "scene")
     every = np.ones(particles, bool)
     methods = {}
     for key in METHODS:
         g = grads[key]
         finite = np.isfinite(g).all(axis=1)
-        rel = check._relative_errors(g, fd, finite)
+        rel = check.relative_errors(g, fd, finite)
         methods[key] = {
             **(_stats("rel_err", rel) if rel.size else
                {"rel_err_median": None, "rel_err_p95": None, "rel_err_max": None}),
@@ -234,7 +234,7 @@ def run_scene(name: str, *, particles: int, repeats: int, seed: int, fd_eps: flo
         "ls_iterations": a.ls_iterations,
         "calibration_faithful": cal.faithful,
         "fd_eps": fd_eps,
-        **_stats("fd_floor", check._relative_errors(fd10, fd, every)),
+        **_stats("fd_floor", check.relative_errors(fd10, fd, every)),
         "methods": methods,
         "chainings_agree": agree,
         **{key: v for s in stepjac.SOLUTIONS

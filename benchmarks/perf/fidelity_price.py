@@ -58,7 +58,7 @@ def measure(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
 
     task = _task(name).build()
     theta, _ = seeding.seed_particles(task, jax.random.key(seed), particles)
-    calibrated, cal = calibrate(task, theta, SolveConfig(allow_unfaithful=True))
+    calibrated, cal = calibrate(task, theta, SolveConfig(calibration={"allow_unfaithful": True}))
     before = task.on_scene(task.scene.with_grad_options(gradient="unrolled", iterations=1,
                                                          ls_iterations=4))
     models = {"before": before, "after": calibrated}
@@ -99,7 +99,7 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
 
     task = _task(name).build()
     theta, _ = seeding.seed_particles(task, jax.random.key(seed), particles)
-    ported, cal = calibrate(task, theta, SolveConfig(allow_unfaithful=True))
+    ported, cal = calibrate(task, theta, SolveConfig(calibration={"allow_unfaithful": True}))
     theta_j = jnp.asarray(theta, task.scene.dtype)
     row = {"task": name, "particles": particles, "horizon": task.horizon,
            "gradient": cal.after.gradient,

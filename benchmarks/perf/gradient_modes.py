@@ -275,7 +275,7 @@ def _objective(qpos, c1, c2):
     return qpos[:, -1] @ c1 + qpos.mean(axis=1) @ c2
 
 
-def _finite_differences(scene, case, theta, c1, c2, eps):
+def finite_differences(scene, case, theta, c1, c2, eps):
     """(n, 2) central differences of f in float64 MuJoCo C with the scene's own solver."""
     from mjstamp.scenes.rollout import replay
 
@@ -289,7 +289,7 @@ def _finite_differences(scene, case, theta, c1, c2, eps):
     return (f[0] - f[1]) / (2 * eps)
 
 
-def _relative_errors(grad, fd):
+def relative_errors(grad, fd):
     """(n,) ‖g − fd‖ / max(‖g‖, ‖fd‖), as `mjstamp check` measures it."""
     err = np.linalg.norm(grad - fd, axis=1)
     scale = np.maximum(np.linalg.norm(fd, axis=1), np.linalg.norm(grad, axis=1))
@@ -390,9 +390,9 @@ def run_scene(name, *, options, particles, repeats, seed, fd_eps, say):
     ref = replay(scene, *_inputs(scene, case, theta, np), horizon=case.horizon,
                  fields=("qpos",), solver="scene")["qpos"]
     x_ref = fidelity.tracked_points(scene.m, ref)
-    fd = _finite_differences(scene, case, theta, c1, c2, fd_eps)
+    fd = finite_differences(scene, case, theta, c1, c2, fd_eps)
     # How far apart two step sizes put the FD itself: the floor of any comparison.
-    fd_floor = _relative_errors(_finite_differences(scene, case, theta, c1, c2, 10 * fd_eps), fd)
+    fd_floor = relative_errors(finite_differences(scene, case, theta, c1, c2, 10 * fd_eps), fd)
 
     mjx_solve = _mjx_solve()
     rows, fns, qpos_of = {}, {}, {}
@@ -403,7 +403,7 @@ def run_scene(name, *, options, particles, repeats, seed, fd_eps, say):
         grad, qpos = np.asarray(grad), np.asarray(qpos)
         qpos_of[option[0]] = qpos
         finite = np.isfinite(grad).all(axis=1)
-        rel = _relative_errors(grad, fd)
+        rel = relative_errors(grad, fd)
         div = fidelity.divergence(fidelity.tracked_points(scene.m, qpos), x_ref)
         row.update({
             "nonfinite": int((~finite).sum()),

@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a solve or task setting for every solve")
     parser.add_argument("--compare", action="append", default=[], metavar="KEY=VALUE",
-                        help="also solve with this setting changed (e.g. backtrack=false)")
+                        help="also solve with this setting changed (e.g. stamp.backtrack=false)")
     add_devices_argument(parser)
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)

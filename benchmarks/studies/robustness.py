@@ -1,7 +1,7 @@
 """Plans that survive uncertain physics (issue 16): nominal vs robust solves, same seed.
 
 For each task and seed, a default solve (the task's registered settings, plus
-any `--set`) and the same solve with `robust=K` (`--robust`, every particle
+any `--set`) and the same solve with `robust.draws=K` (`--robust`, every particle
 rolled out in K draws of the task's uncertainty, expected cost minimised).
 Every returned plan of both is then scored the same way: the share of M = 32
 perturbed MuJoCo C replays (`verify.robustness`, the default uncertainty, the
@@ -80,9 +80,9 @@ def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> d
                            samples=SAMPLES, seed=seed)
     verified = result.verified.ok[idx]
     own = None
-    if config.robust:  # the same plans on the K draws the robust solve optimised for
+    if config.robust.draws:  # the same plans on the K draws the robust solve optimised for
         own = verify.robustness(result.problem, result.theta[idx], result.verified.plan[idx],
-                               samples=config.robust, seed=seed,
+                                samples=config.robust.draws, seed=seed,
                                stream=uncertainty.PLAN_STREAM).success
     return {
         "seed": seed, "wall_s": round(wall, 1),
@@ -226,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         rows: dict[str, list[dict]] = {"nominal": [], "robust": []}
         solves = [("nominal", base)]
         if not args.nominal_only:
-            solves.append(("robust", {**base, "robust": args.robust}))
+            solves.append(("robust", {**base, "robust.draws": args.robust}))
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for label, overrides in solves:
                 r = _solve_row(name, overrides, seed, declare)

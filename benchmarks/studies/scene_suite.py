@@ -126,7 +126,7 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
         refused = str(e)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", FidelityWarning)
-            result = solve(task, {**config, "allow_unfaithful": True}, seed=seed,
+            result = solve(task, {**config, "calibration.allow_unfaithful": True}, seed=seed,
                            progress=progress)
     warned = [str(w.message) for w in caught if issubclass(w.category, FidelityWarning)]
     summary = result.summary()

@@ -71,8 +71,8 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
     say = Progress.of(progress, "compare")
     task, config = task_factory()
     if solve_config:
-        base = config.as_dict() if isinstance(config, SolveConfig) else dict(config or {})
-        config = SolveConfig.from_dict({**base, **dict(solve_config)})
+        base = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
+        config = SolveConfig.from_dict(solve_config, base=base)
     baselines = [m for m in methods if m != "stamp"]
     if baselines and "enumerate" in baselines:
         from mjstamp.baselines.common import candidates  # noqa: PLC0415

@@ -12,7 +12,7 @@ over `starts` random starts. Their settings and why:
   of a 2-4-dimensional task, small enough that one run costs a quarter of
   STAMP's 128-particle SGD phase (more starts did not find plans sooner on
   billiards: the run ends when its candidate is verified).
-- iterations = the task's `sgd_max_iters` (what STAMP's SGD phase gets), with
+- iterations = the task's `stamp.sgd_max_iters` (what STAMP's SGD phase gets), with
   a C verification of every start each `check_every` = 20 iterations, and the
   run ended as soon as its candidate (enumerate) is verified.
 - symbol_weight = 10, block_weight = 10: on the scale of the tasks' costs
@@ -76,7 +76,7 @@ def _setup(task, config, seed: int, starts: int) -> tuple[Problem, SolveConfig]:
     _integer("starts", starts, 1)
     problem = solve_mod.as_problem(task)
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
-    if cfg.calibrate:
+    if cfg.calibration.enabled:
         theta = np.asarray(problem.init(jax.random.key(seed), max(starts, 8)), np.float64)
         problem, _ = solve_mod.calibrate(problem, theta, cfg)
     return problem, cfg
@@ -95,9 +95,12 @@ class _SGD:
             constrained_logdensity(problem, symbol_weight=symbol_weight,
                                    block_weight=block_weight), devices)
         widths = (problem.high - problem.low).astype(np.float64)
-        self.optimizer = solve_mod._optimizer(cfg.sgd_learning_rate, cfg.sgd_step, widths)
+        self.optimizer = solve_mod.box_optimizer(cfg.stamp.sgd_learning_rate, cfg.stamp.sgd_step,
+                                              widths)
         # N.B. as `build_sgd_step` resolves the solve's `jacobian` setting.
-        mode = cfg.jacobian if cfg.jacobian != "auto" else ("fwd" if problem.dim <= 2 else "rev")
+        mode = cfg.stamp.jacobian
+        if mode == "auto":
+            mode = "fwd" if problem.dim <= 2 else "rev"
         optimizer = self.optimizer
 
         def step(theta, opt_state, spec):
@@ -112,7 +115,7 @@ class _SGD:
         theta = jnp.zeros((starts, problem.dim), dtype)
         spec = {k: jnp.asarray(v) for k, v in empty_spec(problem, MAX_BLOCKED, dtype).items()}
         name = (f"baseline-sgd starts={starts} sym={symbol_weight} block={block_weight} "
-                f"{cfg.sgd_learning_rate} {cfg.sgd_step} on {devices}")
+                f"{cfg.stamp.sgd_learning_rate} {cfg.stamp.sgd_step} on {devices}")
         self.step = solve_mod.problem_jit(problem)(step, name, theta, optimizer.init(theta),
                                                    spec)
 
@@ -139,7 +142,7 @@ def _devices(cfg: SolveConfig) -> int:
 
 
 def _iters(cfg: SolveConfig, iters: int | None, check_every: int) -> int:
-    iters = cfg.sgd_max_iters if iters is None else iters
+    iters = cfg.stamp.sgd_max_iters if iters is None else iters
     _integer("iters", iters, 1)
     _integer("check_every", check_every, 1)
     return iters

@@ -132,19 +132,25 @@ def _stdout_for_python_only() -> None:
 
 @contextlib.contextmanager
 def _warnings_as_lines():
-    """Shows mjstamp's own warnings (`FidelityWarning`) as one 'mjstamp: warning: ...' line."""
+    """Shows mjstamp's own warnings as one 'mjstamp: warning: ...' line.
+
+    Those are `FidelityWarning` and `SettingDeprecationWarning` (a flat solve
+    setting such as `--set backtrack=false`: shown, as Python hides a
+    DeprecationWarning raised outside __main__).
+    """
+    from mjstamp.config import SettingDeprecationWarning
     from mjstamp.errors import FidelityWarning
 
+    ours = (FidelityWarning, SettingDeprecationWarning)
     shown = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, FidelityWarning):
+        if issubclass(category, ours):
             print(f"mjstamp: warning: {message}", file=sys.stderr, flush=True)
         else:
             shown(message, category, filename, lineno, file, line)
 
-    warnings.showwarning = show
-    try:
+    with warnings.catch_warnings():
+        warnings.simplefilter("default", SettingDeprecationWarning)
+        warnings.showwarning = show
         yield
-    finally:
-        warnings.showwarning = shown

@@ -115,14 +115,14 @@ def _overrides(args) -> dict:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
         overrides["particles"] = args.particles
     if args.robust is not None:
-        overrides["robust"] = args.robust
+        overrides["robust.draws"] = args.robust
     if args.robust_cvar is not None:
         if not 0 < args.robust_cvar <= 1:  # N.B. false for NaN too
             raise MjstampError(f"--robust-cvar={args.robust_cvar} must be in (0, 1]: the "
                                "share of the worst draws (1: the expected cost)")
-        if not args.robust and not overrides.get("robust"):
+        if not args.robust and not (overrides.get("robust.draws") or overrides.get("robust")):
             raise MjstampError(f"--robust-cvar={args.robust_cvar} needs --robust K with K >= 1")
-        overrides["robust_cvar"] = args.robust_cvar
+        overrides["robust.cvar"] = args.robust_cvar
     if args.devices is not None:
         import jax
 

@@ -100,7 +100,7 @@ def task_particles(problem) -> Particles:
                      lambda theta, xp: problem.inputs(theta, xp=xp), sample)
 
 
-def _parameterisation(scene: Scene, spec: CheckSpec) -> Particles:
+def parameterisation(scene: Scene, spec: CheckSpec) -> Particles:
     """The particles of `spec` on a bare scene."""
     m = scene.m
     qpos0, qvel0 = scene.initial_state()
@@ -178,7 +178,7 @@ def check_scene(
     Returns:
       The report of `check`.
     """
-    draws = _parameterisation(scene, spec or CheckSpec())
+    draws = parameterisation(scene, spec or CheckSpec())
     return check(scene, draws, particles=particles, seed=seed, fd_eps=fd_eps,
                  tolerance=tolerance, progress=progress, calibrate=calibrate)
 
@@ -258,8 +258,8 @@ def check(
     for solver in ("scene", "grad"):
         say(f"central differences in MuJoCo C, {solver} solver "
             f"({2 * draws.dim * particles} float64 rollouts)")
-        fd = _finite_differences(scene, draws.to_inputs, theta, c1, c2, fd_eps, solver)
-        rel[solver] = _relative_errors(grads["grad"], fd, grads["finite"])
+        fd = finite_differences(scene, draws.to_inputs, theta, c1, c2, fd_eps, solver)
+        rel[solver] = relative_errors(grads["grad"], fd, grads["finite"])
     report = _report(scene, draws, particles, verdict, grads, rel, fd_eps)
     if calibrated is None and not report["faithful"]:
         say("calibrating: the cheapest faithful solver setting")
@@ -343,7 +343,7 @@ def _gradients(scene, draws: Particles, rollout, theta, c1, c2, say) -> dict:
             "seconds": float(np.median(times)), "compile_s": compile_s}
 
 
-def _finite_differences(scene, to_inputs, theta, c1, c2, eps, solver) -> np.ndarray:
+def finite_differences(scene, to_inputs, theta, c1, c2, eps, solver) -> np.ndarray:
     """(n, dim) central differences of the objective in float64 MuJoCo C."""
     particles, dim = theta.shape
     plus = np.repeat(theta[:, None, :], dim, axis=1) + eps * np.eye(dim)
@@ -355,7 +355,8 @@ def _finite_differences(scene, to_inputs, theta, c1, c2, eps, solver) -> np.ndar
     return (f[0] - f[1]) / (2 * eps)
 
 
-def _relative_errors(grad, fd, finite) -> np.ndarray:
+def relative_errors(grad, fd, finite) -> np.ndarray:
+    """|AD − FD| / max(|FD|, |AD|) per particle (rows), over the finite rows only."""
     err = np.linalg.norm(grad - fd, axis=1)
     scale = np.maximum(np.linalg.norm(fd, axis=1), np.linalg.norm(grad, axis=1))
     return err[finite] / np.maximum(scale[finite], 1e-9)

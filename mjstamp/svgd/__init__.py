@@ -5,8 +5,10 @@ density, in the manner of blackjax and optax (a state NamedTuple, `build_*`
 factories returning `step(state, key) -> (state, info)`, optax for updates).
 
 What it may import: the standard library, jax, numpy, optax, tqdm, its own
-modules and `mjstamp.progress` (the one progress reporter, itself the standard
-library alone). Never `mujoco` nor `mjstamp.relax` (nor the rest of mjstamp): the engine
+modules, `mjstamp.progress` (the one progress reporter, itself the standard library
+alone) and `mjstamp.errors` (a leaf that imports nothing: bad settings raise the
+`MjstampError` the rest of mjstamp raises). Never `mujoco` nor `mjstamp.relax`
+(nor the rest of mjstamp): the engine
 knows nothing of physics or task plans, and toy densities such as Figure 1's live
 in `benchmarks/paper/mixture.py` (tests/test_svgd_imports.py checks this).
 

@@ -21,7 +21,7 @@ import importlib
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from mjstamp.config import SolveConfig
+from mjstamp.config import FLAT_NAMES, SolveConfig
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable
 from mjstamp.tasks.problem import Decoded, Poses, Problem, Rollout, as_problem
@@ -88,8 +88,9 @@ def register(
       name: the task's name.
       default_config: () -> the task's own settings.
       summary: one line for `mjstamp tasks`.
-      solve_config: () -> the task's solve settings (fields of `SolveConfig`
-        that differ from its defaults); validated when the task is loaded.
+      solve_config: () -> the task's solve settings (`SolveConfig.from_dict`'s
+        keys, such as {"stamp": {"min_iters": 20}}, that differ from its
+        defaults); validated when the task is loaded.
       options: `mjstamp solve` flags this task contributes.
       commands: `mjstamp` commands this task contributes.
     """
@@ -143,7 +144,10 @@ def solve_config(name: str) -> SolveConfig:
 def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
     """Builds a registered task; returns (task, its solve settings).
 
-    Each override is a task setting or a solve setting (`SolveConfig` field).
+    Each override is a task setting or a solve setting (`SolveConfig.from_dict`'s
+    keys: "particles", a group's dict such as `stamp={...}`, or a dotted key,
+    passed as `**{"stamp.backtrack": False}`), laid over the task's own solve
+    settings.
 
     Raises:
       MjstampError: an unknown task or setting (naming both kinds of valid keys),
@@ -153,21 +157,22 @@ def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
     entry = _entry(name)
     settings = entry.default_config()
     solve_keys = SolveConfig.fields()
-    shadowed = sorted(set(settings) & set(solve_keys))
+    taken = set(solve_keys) | set(SolveConfig.groups()) | set(FLAT_NAMES)
+    shadowed = sorted(set(settings) & taken)
     if shadowed:
         raise MjstampError(
             f"task {name!r}: its setting {shadowed[0]!r} has the name of a solve setting; "
             f"rename it (solve settings: {valid_list(solve_keys)})"
         )
-    unknown = sorted(set(overrides) - set(settings) - set(solve_keys))
+    unknown = sorted(set(overrides) - set(settings) - taken)
     if unknown:
         raise MjstampError(
             f"task {name!r} has no setting {unknown[0]!r}; valid task settings: "
             f"{valid_list(sorted(settings))}; valid solve settings: {valid_list(solve_keys)}"
         )
     settings.update({k: v for k, v in overrides.items() if k in settings})
-    solve = {**entry.solve_config(), **{k: v for k, v in overrides.items() if k not in settings}}
-    config = SolveConfig.from_dict(solve)
+    config = SolveConfig.from_dict({k: v for k, v in overrides.items() if k not in settings},
+                                   base=SolveConfig.from_dict(entry.solve_config()))
     task = entry.make(settings)
     task.settings = dict(settings)
     return task, config
@@ -176,17 +181,21 @@ def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
 def parse_overrides(task_name: str, pairs: Sequence[str]) -> dict:
     """`KEY=VALUE` texts (the CLI's `--set`) as `load`'s overrides, each typed like its default.
 
-    A key is a setting of the task or a solve setting (`SolveConfig` field); a
-    value takes its default's type (true/false/1/0/yes/no/on/off for a bool;
-    "none" for a setting whose default is None; a number or a word such as
-    "auto" for `cost_scale`).
+    A key is a setting of the task or a solve setting by its dotted key
+    (`stamp.backtrack`, `SolveConfig.fields()`; a flat name of before the
+    nesting, such as `backtrack`, is typed like its new key and warned about
+    once by `load`); a value takes its default's type
+    (true/false/1/0/yes/no/on/off for a bool; "none" for a setting whose
+    default is None; a number or a word such as "auto" for `screen.cost_scale`).
 
     Raises:
       MjstampError: an unknown task, a pair without "=", an unknown key
         (listing the valid ones) or a value of the wrong type; one line each.
     """
-    defaults = {f.name: (f.default, str(f.type)) for f in dataclasses.fields(SolveConfig)}
-    defaults.update({k: (v, type(v).__name__) for k, v in default_config(task_name).items()})
+    solve = SolveConfig.leaves()
+    defaults = {**solve, **{old: solve[new] for old, new in FLAT_NAMES.items()}}
+    task_defaults = {k: (v, type(v).__name__) for k, v in default_config(task_name).items()}
+    defaults.update(task_defaults)
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
@@ -195,7 +204,7 @@ def parse_overrides(task_name: str, pairs: Sequence[str]) -> dict:
         if key not in defaults:
             raise MjstampError(
                 f"--set {key!r}: task {task_name!r} has no such setting; valid: "
-                + ", ".join(sorted(defaults))
+                + ", ".join(sorted(task_defaults) + list(solve))
             )
         out[key] = _parse_value(key, value, *defaults[key])
     return out

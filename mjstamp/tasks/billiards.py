@@ -57,12 +57,14 @@ def solve_config() -> dict:
     """Settings of its solve (the rest are `SolveConfig`'s defaults)."""
     return {
         "particles": 128,
-        "svgd_learning_rate": 0.05,
-        "sgd_learning_rate": 0.02,
-        "svgd_max_iters": 40,
-        "sgd_max_iters": 80,
-        "min_iters": 20,
-        "jacobian": "fwd",  # d = 2 tangents beat 1 + 4 pullbacks through the rollout
+        "stamp": {
+            "svgd_learning_rate": 0.05,
+            "sgd_learning_rate": 0.02,
+            "svgd_max_iters": 40,
+            "sgd_max_iters": 80,
+            "min_iters": 20,
+            "jacobian": "fwd",  # d = 2 tangents beat 1 + 4 pullbacks through the rollout
+        },
     }
 
 

@@ -83,11 +83,13 @@ def solve_config() -> dict:
     """Settings of its solve (the rest are `SolveConfig`'s defaults)."""
     return {
         "particles": 64,
-        "svgd_learning_rate": 0.03,
-        "sgd_learning_rate": 0.02,
-        "sgd_max_iters": 100,
-        "min_iters": 20,
-        "jacobian": "rev",
+        "stamp": {
+            "svgd_learning_rate": 0.03,
+            "sgd_learning_rate": 0.02,
+            "sgd_max_iters": 100,
+            "min_iters": 20,
+            "jacobian": "rev",
+        },
     }
 
 

@@ -64,8 +64,10 @@ OUTCOMES = ("ok", "rejected", "unhealthy", "crash")
 # The tiny solve: a few particles and iterations, enough to compile and run every
 # stage of `mjstamp.solve.solve` (screen, calibration, STAMP's two phases, decode
 # and C verification) once; min_iters > the iterations, so no phase ends early.
-SOLVE_CONFIG = {"particles": 4, "svgd_max_iters": 2, "sgd_max_iters": 2, "min_iters": 100,
-                "screen": 1, "repair": False, "allow_unfaithful": True}
+SOLVE_CONFIG = {"particles": 4,
+                "stamp": {"svgd_max_iters": 2, "sgd_max_iters": 2, "min_iters": 100},
+                "screen": {"candidates": 1}, "verify": {"repair": False},
+                "calibration": {"allow_unfaithful": True}}
 SOLVE_HORIZON = 20
 SOLVE_OUTCOMES = ("ok", "rejected", "crash")
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import io
 import json
 import os
@@ -68,7 +69,7 @@ def _settings(task: str) -> dict:
     from mjstamp import tasks
     from mjstamp.config import SolveConfig
 
-    defaults = {f.name: f.default for f in dataclasses.fields(SolveConfig)}
+    defaults = {key: default for key, (default, _) in SolveConfig.leaves().items()}
     defaults.update(tasks.default_config(task))
     return defaults
 
@@ -246,9 +247,9 @@ def run_one(argv: list[str], report: Report) -> str:
     if outcome == "accepted" and seen and isinstance(seen[0], SolveConfig):
         fields = set(SolveConfig.fields())
         for key, want in _expected_bools(argv).items():
-            if key in fields and isinstance(getattr(seen[0], key), bool) \
-                    and getattr(seen[0], key) is not want:
-                outcome, detail = "crash", f"--set {key} read as {getattr(seen[0], key)!r}"
+            got = functools.reduce(getattr, key.split("."), seen[0]) if key in fields else None
+            if isinstance(got, bool) and got is not want:
+                outcome, detail = "crash", f"--set {key} read as {got!r}"
     report.add(outcome, argv, detail)
     return outcome
 

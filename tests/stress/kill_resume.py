@@ -27,8 +27,9 @@ from mjstamp import checkpoint
 from mjstamp.errors import MjstampError
 
 ITERS = 10
-ARGS = ["solve", "billiards", "--particles", "16", "--set", f"svgd_max_iters={ITERS}",
-        "--set", f"sgd_max_iters={ITERS}", "--set", "min_iters=100", "--no-coverage", "--quiet",
+ARGS = ["solve", "billiards", "--particles", "16", "--set", f"stamp.svgd_max_iters={ITERS}",
+        "--set", f"stamp.sgd_max_iters={ITERS}", "--set", "stamp.min_iters=100", "--no-coverage",
+        "--quiet",
         "--checkpoint-every", "0", "--json"]
 VOLATILE = ("wall_time_s", "timings", "iteration_seconds", "compiles")
 
