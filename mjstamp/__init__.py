@@ -25,7 +25,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__version__ = "0.1.0"
+from mjstamp.version import __version__  # noqa: F401 - the package face hands it on
 
 DEFAULT_CACHE = Path.home() / ".cache" / "mjstamp" / "jax"
 

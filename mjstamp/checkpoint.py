@@ -28,11 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from mjstamp import __version__, parallel
+from mjstamp import parallel
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import probe, write_atomic
 from mjstamp.progress import Progress
 from mjstamp.svgd import LoopSnapshot, StampDiagnostics
+from mjstamp.version import __version__
 
 __all__ = ["FILENAME", "Checkpointer", "Interrupted", "describe", "fingerprint", "load",
            "read_meta", "save"]

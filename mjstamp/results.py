@@ -26,7 +26,7 @@ import re
 import shlex
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -36,12 +36,8 @@ from mjstamp.checkpoint import FILENAME as CHECKPOINT_FILENAME
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.fileio import probe, write_atomic
 from mjstamp.scenes.fidelity import describe
-from mjstamp.svgd import PHASE_SGD, PHASE_SVGD
-
-if TYPE_CHECKING:
-    from mjstamp.solve import SolveResult
-    from mjstamp.svgd import StampDiagnostics, StampResult
-    from mjstamp.tasks.problem import Decoded
+from mjstamp.svgd import PHASE_SGD, PHASE_SVGD, StampDiagnostics, StampResult
+from mjstamp.tasks.problem import Decoded
 
 __all__ = ["PER_PARTICLE", "SCHEMA_VERSION", "Results", "check_writable", "format_table",
            "group", "load", "load_model", "load_results", "save", "summarize", "to_arrays",
@@ -151,7 +147,7 @@ def _check_summary(plans: Path, summary: dict) -> None:
 # Writing.
 
 
-def summarize(result: SolveResult, coverage: dict | None = None) -> dict:
+def summarize(result, coverage: dict | None = None) -> dict:
     """The JSON view of a solve: the body of plans.json (`SolveResult.summary`).
 
     Args:
@@ -230,7 +226,7 @@ def _plan_robustness(rob: dict | None, i: int) -> dict:
             "robust_cost_std": float(spread) if np.isfinite(spread) else None}
 
 
-def _plans(result: SolveResult) -> list[dict]:
+def _plans(result) -> list[dict]:
     """plans.json's "plans": one entry per returned plan."""
     params = result.problem.unpack(result.theta)
     return [
@@ -267,7 +263,7 @@ def _nonfinite_report(stamp: StampResult) -> dict[str, int]:
             "redrawn": int(stamp.nonfinite_redrawn.sum())}
 
 
-def to_arrays(result: SolveResult) -> dict[str, dict[str, np.ndarray]]:
+def to_arrays(result) -> dict[str, dict[str, np.ndarray]]:
     """Arrays for the result files: particles.npz and trajectories.npz (`SolveResult.arrays`)."""
     d = result.diagnostics
     particles = {
@@ -342,7 +338,7 @@ def save(
     return written
 
 
-def write(result: SolveResult, out: str | os.PathLike, *,
+def write(result, out: str | os.PathLike, *,
           coverage: dict | None = None) -> list[Path]:
     """Writes a solve's results directory: plans.json, the .npz files and scene.mjb.
 

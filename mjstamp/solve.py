@@ -36,6 +36,7 @@ from mjstamp.progress import QUIET, Progress, ProgressLike
 from mjstamp.scenes import contacts, fidelity
 from mjstamp.tasks import Problem, Task, as_problem
 from mjstamp.tracecache import cached_jit
+from mjstamp.version import __version__
 
 __all__ = ["MAX_SEED", "SolveConfig", "SolveResult", "as_problem", "calibrate", "problem_jit",
            "solve"]
@@ -393,7 +394,7 @@ def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, res
         raise MjstampError(f"checkpoint_every_s={every_s!r} must be a number >= 0 (seconds)")
     # N.B. the device count resolved: a resume on other devices would shard otherwise.
     settings = {"task": dict(problem.settings), "solve": {**cfg.flat_dict(), "devices": devices}}
-    meta = {"task": problem.name, "version": checkpoint_mod.__version__,
+    meta = {"task": problem.name, "version": __version__,
             "fingerprint": checkpoint_mod.fingerprint(problem.fingerprint, settings, seed),
             "seed": seed, "settings": settings}
     snap = None
