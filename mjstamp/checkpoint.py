@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from mjstamp import parallel
+from mjstamp.config import FLAT_NAMES
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import probe, write_atomic
 from mjstamp.progress import Progress
@@ -166,7 +167,9 @@ def _first_change(meta: Mapping[str, Any], settings, seed) -> str:
         for name, value in (settings or {}).get(group, {}).items():
             before = old.get(group, {}).get(name)
             if before != value:
-                return f"{group} setting {name} was {before!r}, is {value!r}"
+                # N.B. solve settings are hashed by their flat names; say the dotted one.
+                shown = FLAT_NAMES.get(name, name) if group == "solve" else name
+                return f"{group} setting {shown} was {before!r}, is {value!r}"
     return ""
 
 
@@ -192,7 +195,7 @@ class Checkpointer:
         self.meta = dict(meta)
         self.every_s = float(every_s)
         self.resume_hint = resume_hint
-        self.say = Progress.of(progress, "checkpoint")
+        self.say = Progress.of(progress or False, "checkpoint")  # N.B. None: silent, as before
         self.signal: int | None = None
         self.saved = 0
         self._last = time.monotonic()

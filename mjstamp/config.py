@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import inspect
 import math
 import numbers
+import os
 import warnings
 from collections.abc import Mapping
 from typing import Any
@@ -221,9 +223,21 @@ FLAT_NAMES = {
 }
 
 
-def _deprecated(old: str, new: str, stacklevel: int) -> None:
+def _deprecated(old: str, new: str) -> None:
+    """Warns where the user wrote the flat name: the first frame outside mjstamp.
+
+    N.B. Python shows a DeprecationWarning only where it is attributed to
+    `__main__` (a script, a notebook); one attributed to a frame inside mjstamp
+    (`tasks.load`, `solve(task, {...})`) would never be seen.
+    """
+    frame, level = inspect.currentframe().f_back, 2
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):
+        frame, level = frame.f_back, level + 1
     warnings.warn(f"solve setting {old!r} is now {new!r}; the flat name goes in the next "
-                  "release", SettingDeprecationWarning, stacklevel=stacklevel + 1)
+                  "release", SettingDeprecationWarning, stacklevel=level)
+
+
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
 
 
 def _is_group_value(name: str, value) -> bool:
@@ -285,7 +299,7 @@ class SolveConfig:
         for old, value in flat.items():
             if old not in FLAT_NAMES:
                 raise TypeError(f"SolveConfig got an unexpected keyword argument {old!r}")
-            _deprecated(old, FLAT_NAMES[old], stacklevel=2)
+            _deprecated(old, FLAT_NAMES[old])
             group, field = FLAT_NAMES[old].split(".")
             changes[group][field] = value
         object.__setattr__(self, "particles", particles)
@@ -363,7 +377,7 @@ class SolveConfig:
             if _is_group_value(key, value) and isinstance(value, Mapping):
                 settings.update({f"{key}.{k}": v for k, v in value.items()})
             elif key in FLAT_NAMES and key not in valid:
-                _deprecated(key, FLAT_NAMES[key], stacklevel=2)
+                _deprecated(key, FLAT_NAMES[key])
                 settings[FLAT_NAMES[key]] = value
             elif key in _GROUPS and isinstance(value, _GROUPS[key][0]):
                 settings.update({f"{key}.{k}": v for k, v in
@@ -382,6 +396,18 @@ class SolveConfig:
                          if k.startswith(name + ".")} for name in _GROUPS}
         return cls(**top, **{name: _group(name, getattr(base, name), changes)
                              for name, changes in groups.items()})
+
+    def __getattr__(self, name: str):
+        """`cfg.backtrack` (a flat name) reads `cfg.stamp.backtrack`, with the deprecation notice.
+
+        N.B. `screen` and `robust` are groups now: `cfg.screen.candidates`, `cfg.robust.draws`.
+        """
+        new = FLAT_NAMES.get(name)
+        if new is None or name in _GROUPS:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        _deprecated(name, new)
+        group, field = new.split(".")
+        return getattr(getattr(self, group), field)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready view, nested like the config ({"particles", "devices", "stamp": {...}})."""

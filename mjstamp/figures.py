@@ -219,6 +219,8 @@ def robustness_figure(result) -> Figure:
     fig = Figure(figsize=(7, 2.4 + 0.32 * max(len(rows), 1)), layout="constrained")
     ax = fig.add_subplot()
     robust = result.config.get("solve", {}).get("robust") or 0
+    if isinstance(robust, dict):  # N.B. a nested config: {"draws": K, "cvar": A}
+        robust = robust.get("draws") or 0
     how = f"robust planning, K = {robust}" if robust else "nominal planning"
     # N.B. two lines: one ran off a 7-inch figure's right edge ("…32 perturbed repla").
     ax.set_title(f"{result.task.name}: plans under uncertain physics\n"

@@ -2,8 +2,9 @@
 
 Every long call of mjstamp takes `progress`, one of what a user may pass:
 
-- None: a tqdm bar on a terminal; in a log or a pipe, where a bar shows
-  nothing, status lines instead (the default of `solve`, `modes.sweep`);
+- None: status lines, and a tqdm bar on a terminal; a loop that draws a bar
+  (the STAMP loop, the sweeps) writes lines in its place only in a log or a
+  pipe, where a bar shows nothing (the default of `solve`, `modes.sweep`);
 - True: the bar and the lines; False: nothing (the default of the calls a
   command runs for its user, such as `check_scene`);
 - a callable that takes each status line (a notebook's own logger);

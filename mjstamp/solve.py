@@ -513,7 +513,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
                                   initial_faithful=initial_faithful))
     return SolveResult(
         problem=problem, config={"seed": seed, "task": dict(problem.settings),
-                                 "solve": cfg.as_dict()},
+                                 "solve": cfg.flat_dict()},
         theta=theta, svgd_theta=svgd_theta,
         initial_theta=theta0_np, cost=outcome.cost, returned=returned, repaired=repaired,
         predicted=outcome.predicted, verified=outcome.verified, replay=outcome.replay,

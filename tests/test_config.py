@@ -143,3 +143,18 @@ def test_a_task_loads_with_nested_overrides():
                                             screen={"candidates": 2}))
     assert cfg.stamp.backtrack is False and cfg.screen.candidates == 2
     assert cfg.stamp.svgd_max_iters == 40 and cfg.stamp.jacobian == "fwd"  # billiards' own
+
+
+def test_the_deprecation_is_attributed_to_the_line_the_user_wrote():
+    """A DeprecationWarning shows only where it is attributed to the user's own code."""
+    from mjstamp import tasks
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        tasks.load("billiards", backtrack=False)
+        cfg = SolveConfig.from_dict({"keep_visited": False})
+        assert cfg.repair_rounds == cfg.verify.repair_rounds  # a flat read, deprecated too
+    assert [w.filename for w in caught] == [__file__] * 3, [(w.filename, w.lineno) for w in caught]
+    assert all(issubclass(w.category, SettingDeprecationWarning) for w in caught)
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        SolveConfig().nope  # noqa: B018

@@ -144,7 +144,7 @@ def test_a_robust_solve_records_its_draws_and_keys_its_traces_by_them(tiny_task,
     summary = result.summary()
     assert summary["robust_planning"]["samples"] == 2
     assert "geom_friction" in summary["robust_planning"]["fields"]
-    assert summary["config"]["solve"]["robust"]["draws"] == 2
+    assert summary["config"]["solve"]["robust"] == 2  # plans.json keeps the flat view
     one, two = result.problem, result.problem.with_robust(2, seed=1)
     assert one.robust.key() != two.robust.key()
     assert one.robust.key() == result.problem.with_robust(2, seed=0).robust.key()

@@ -68,7 +68,7 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
 
     methods = parse_methods(methods)
     _check(seeds, cap_s)
-    say = Progress.of(progress, "compare")
+    say = Progress.of(progress or False, "compare")  # N.B. None: silent, as before
     task, config = task_factory()
     if solve_config:
         base = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)

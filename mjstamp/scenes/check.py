@@ -187,11 +187,12 @@ def check_task(problem, *, particles: int = 256, **kwargs) -> dict:
     """`check` on a task's own particles (θ in its bounds, its horizon and inputs).
 
     Args:
-      problem: the task's `Problem` (`mjstamp.tasks.as_problem(task)`: scenes/
-        sits below tasks/ and takes the problem, not the declaration).
+      problem: the task's `Problem`, or the `Task` (built here).
       particles: N random particles.
       **kwargs: as `check_scene` (seed, fd_eps, tolerance, progress, calibrate).
     """
+    if hasattr(problem, "build"):  # N.B. a Task: scenes/ cannot import tasks/, so duck-typed
+        problem = problem.build()
     return check(problem.scene, task_particles(problem), particles=particles, **kwargs)
 
 
@@ -228,7 +229,7 @@ def check(
     """
     if particles < 1:
         raise MjstampError(f"particles={particles} must be >= 1")
-    say = Progress.of(progress, "check")
+    say = Progress.of(progress or False, "check")  # N.B. None: silent, as before
     tolerance = fidelity.default_tolerance(scene) if tolerance is None else float(tolerance)
     if draws.dim == 0:
         raise MjstampError(f"scene {scene.name!r} has no joints or actuators to vary")

@@ -268,7 +268,7 @@ def calibrate(
     Returns:
       A `Calibration`.
     """
-    say = Progress.of(progress, "fidelity")
+    say = Progress.of(progress or False, "fidelity")  # N.B. None: silent, as before
     tolerance = default_tolerance(scene) if tolerance is None else float(tolerance)
     if not tolerance > 0:
         raise MjstampError(f"fidelity tolerance={tolerance} must be > 0 (metres)")

@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
-from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -36,6 +35,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError
+from mjstamp.progress import Progress, ProgressLike
 from mjstamp.skills import bank as bank_mod
 from mjstamp.skills import dmp
 
@@ -299,7 +299,7 @@ def fit_bank(
     setup: PushSetup,
     *,
     demos: dict[str, dict[str, np.ndarray]] | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: ProgressLike = False,
 ):
     """Fits each side's two DMPs to its demonstrations (recorded here unless given).
 
@@ -307,13 +307,13 @@ def fit_bank(
       scene: the pushing `Scene`.
       setup: `PushSetup`.
       demos: `record_all`'s output, to fit (and later check) the same recordings.
-      progress: called with a line per side.
+      progress: a line per side (`mjstamp.progress`; False, the default: none).
     """
+    say = Progress.of(progress or False, "skills")
     skills = {}
     for i, side in enumerate(SIDES):
-        if progress:
-            verb = "fitting" if demos is not None else "recording and fitting"
-            progress(f"{verb} the '{side}' push skill")
+        verb = "fitting" if demos is not None else "recording and fitting"
+        say(f"{verb} the '{side}' push skill")
         side_demos = (demos[side] if demos is not None
                       else record_demonstrations(scene, setup, i))
         skills[f"{side}/approach"] = dmp.fit(

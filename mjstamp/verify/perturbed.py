@@ -147,7 +147,7 @@ def perturbed_replays(m: mujoco.MjModel, scored: dict | None, qpos0: np.ndarray,
     """
     if not scored:
         raise MjstampError(f"{where} holds no robustness scores (solved with "
-                           "robustness_samples=0): there are no perturbed replays to play")
+                           "verify.robustness_samples=0): there are no perturbed replays to play")
     samples = int(scored["samples"])
     if not 1 <= count <= samples:
         raise MjstampError(f"perturbed replays={count} is not valid for {where}: its plans "
