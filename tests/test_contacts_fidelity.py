@@ -102,8 +102,8 @@ def test_solve_warns_in_one_line_and_goes_on_where_mjx_parts(monkeypatch, tiny_t
 
     problem = tiny_task().build()
     theta = np.array([[1.0, 0.5], [1.5, -0.5]])
-    qpos_c = verify.simulate_c(problem, theta).qpos
-    off = qpos_c.copy()
+    replay_c = verify.simulate_c(problem, theta)
+    off = replay_c.qpos.copy()
     off[:, 10:, 0] += 0.05  # the puck jumps 5 cm at step 11
 
     class Evaluate:
@@ -116,7 +116,8 @@ def test_solve_warns_in_one_line_and_goes_on_where_mjx_parts(monkeypatch, tiny_t
     said = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        report = solve_mod._check_mjx(problem, Evaluate(), theta, Calibration(), said.append)
+        report = solve_mod._check_mjx(problem, Evaluate(), theta, Calibration(), said.append,
+                                      replay_c)
     (w,) = [w for w in caught if issubclass(w.category, FidelityWarning)]
     msg = str(w.message)
     assert "\n" not in msg and msg.startswith("scene 'tiny': MJX rollouts vs MuJoCo C")
