@@ -81,6 +81,7 @@ def default_config() -> dict:
         "horizon": 600,  # steps of 2 ms
         "knots": 3,
         "pitch_speed": 0.2,  # rad/s: bound of the shoulder and elbow pitch knots
+        "hull_vertices": 24,  # per finger mesh's convex hull (as shipped: 156 and 213)
         "brick_x": 0.5,
         "brick_y": 0.03,
         "brick_half": 0.025,
@@ -129,6 +130,8 @@ def compose(config: dict | None = None):
     arm = kinova.JacoArm(name="jaco_arm")
     hand = kinova.JacoHand(name="jaco_hand", use_pinch_site_as_tcp=True)
     arm.attach(hand)
+    for mesh in ("finger_proximal", "finger_distal"):
+        hand.mjcf_model.find("mesh", mesh).maxhullvert = int(c["hull_vertices"])
     for geom in arm.mjcf_model.find_all("geom") + hand.mjcf_model.find_all("geom"):
         finger = geom.name in FINGER_GEOMS
         geom.contype = _FINGER if finger else 0
