@@ -35,6 +35,11 @@ Choices (and why):
   (there is no broad phase), so each pruned mesh pair is time saved;
 - noslip off: dm_control's arena asks for 5 noslip iterations, which MJX does
   not run; the C replay must run the physics MJX plans with;
+- the finger meshes' convex hulls capped at 24 vertices (`maxhullvert`; as
+  shipped 156 and 213): MuJoCo C and MJX both collide a mesh by its hull; the
+  cap cut the MJX step's compile from 51 s to about 7 s (cache warm) and its
+  time from 35 to 20 ms per particle-step (2-core CPU under load) while the
+  three known plans still succeed in C;
 - horizon 1.2 s at dm_control's 2 ms step: at 36°/s the fingertips sweep
   about 0.3 m/s, enough to push the brick 15-20 cm;
 - the shoulder and elbow pitch knots are bounded by ±0.2 rad/s, not their
@@ -42,6 +47,12 @@ Choices (and why):
   in) within the horizon, and pushes nothing;
 - the goals lie along the sweep: with the servos' speed limits the brick's
   end point spreads ±4 cm across the sweep and 0-12 cm along it in 1.2 s.
+
+N.B. (measured, 2-core CPU shared with other jobs) MJX is the bottleneck on
+this model: a vmapped `mjx.step` takes about 20 ms per particle-step against
+MuJoCo C's 10 µs, and 15 ms of it is `smooth.kinematics` alone (billiards:
+0.09 ms), with finger collisions 1 ms and the solver 4 ms; the cause is not
+found yet. `mjstamp check jaco` at its defaults runs past 10 minutes.
 """
 
 from __future__ import annotations
@@ -81,7 +92,7 @@ def default_config() -> dict:
         "horizon": 600,  # steps of 2 ms
         "knots": 3,
         "pitch_speed": 0.2,  # rad/s: bound of the shoulder and elbow pitch knots
-        "hull_vertices": 24,  # per finger mesh's convex hull (as shipped: 156 and 213)
+        "hull_vertices": 24,  # per finger mesh's convex hull; 0: as shipped (156 and 213)
         "brick_x": 0.5,
         "brick_y": 0.03,
         "brick_half": 0.025,
@@ -130,7 +141,7 @@ def compose(config: dict | None = None):
     arm = kinova.JacoArm(name="jaco_arm")
     hand = kinova.JacoHand(name="jaco_hand", use_pinch_site_as_tcp=True)
     arm.attach(hand)
-    for mesh in ("finger_proximal", "finger_distal"):
+    for mesh in ("finger_proximal", "finger_distal") if int(c["hull_vertices"]) else ():
         hand.mjcf_model.find("mesh", mesh).maxhullvert = int(c["hull_vertices"])
     for geom in arm.mjcf_model.find_all("geom") + hand.mjcf_model.find_all("geom"):
         finger = geom.name in FINGER_GEOMS
