@@ -462,7 +462,7 @@ def run_stamp(
         logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
         svgd_optimizer, sgd_optimizer, particles.shape[1],
     )  # fmt: skip
-    loop = _Loop(config, jit, n=particles.shape[0], progress=Progress.of(progress, "stamp"),
+    loop = _Loop(config, jit, n=particles.shape[0], progress=Progress.of(progress).under("stamp"),
                  redraw=redraw, checkpoint=checkpoint)
     carry = _Carry.init(key, particles.shape[0], backtrack=config.backtrack)
     if resume is not None:
@@ -562,7 +562,7 @@ class _Loop:
         self.jit = jit
         self.n = n
         # N.B. without a terminal tqdm writes nothing a log can show: say lines instead.
-        self.say = progress.under("stamp") if progress.lines else QUIET
+        self.say = progress if progress.lines else QUIET
         self.bar = tqdm(
             total=config.svgd_max_iters + config.sgd_max_iters,
             desc="STAMP",
