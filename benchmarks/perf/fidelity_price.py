@@ -48,6 +48,20 @@ def _timed(problem, theta, repeats: int):
     return fn, time.perf_counter() - t0
 
 
+def _us_per_particle_step(fns: dict, theta_j, repeats: int, steps: int) -> dict[str, float]:
+    """{"us_per_particle_step_KEY": median µs} of each compiled fn, timed in turns."""
+    import jax
+
+    times = {key: [] for key in fns}
+    for _ in range(repeats):
+        for key, fn in fns.items():  # alternate: all see the same load
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(theta_j))
+            times[key].append(time.perf_counter() - t0)
+    return {f"us_per_particle_step_{key}": float(np.median(times[key]) / steps * 1e6)
+            for key in fns}
+
+
 def measure(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
     """One task's row: before/after µs per particle-step and divergence."""
     import jax
@@ -71,15 +85,7 @@ def measure(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
         qpos = np.asarray(rollout(*t.inputs(theta_j))["qpos"])
         div = mjx_divergence(t, theta, qpos)
         row[f"divergence_{key}_p95_m"] = float(np.percentile(div, 95))
-    times = {key: [] for key in models}
-    for _ in range(repeats):
-        for key, fn in fns.items():  # alternate: both see the same load
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(theta_j))
-            times[key].append(time.perf_counter() - t0)
-    steps = particles * task.horizon
-    for key in models:
-        row[f"us_per_particle_step_{key}"] = float(np.median(times[key]) / steps * 1e6)
+    row.update(_us_per_particle_step(fns, theta_j, repeats, particles * task.horizon))
     row["price"] = row["us_per_particle_step_after"] / row["us_per_particle_step_before"]
     return row
 
@@ -121,15 +127,7 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
             row[f"error_{key}"] = str(e)
             continue
         row[f"divergence_{key}_p95_m"] = float(np.percentile(mjx_divergence(t, theta, qpos), 95))
-    times = {key: [] for key in fns}
-    for _ in range(repeats):
-        for key, fn in fns.items():  # alternate: both see the same load
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(theta_j))
-            times[key].append(time.perf_counter() - t0)
-    steps = particles * task.horizon
-    for key in fns:
-        row[f"us_per_particle_step_{key}"] = float(np.median(times[key]) / steps * 1e6)
+    row.update(_us_per_particle_step(fns, theta_j, repeats, particles * task.horizon))
     if len(fns) == 2:
         row["price"] = row["us_per_particle_step_ported"] / row["us_per_particle_step_mjx"]
     return row

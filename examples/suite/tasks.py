@@ -110,29 +110,13 @@ def _via_points(name: str, start, times, horizon: int):
     return controls
 
 
-def _ends_in_any(body: str, zones: dict[str, str]):
-    """Success: the body's centre ends inside one of several box sites; label = which."""
-    checks = {label: costs.ends_in(body, site) for label, site in zones.items()}
-
-    def predicate(replay):
-        ok = np.zeros(replay.qpos.shape[0], bool)
-        label = np.full(len(ok), "", dtype=object)
-        for name, check in checks.items():
-            inside = check(replay)[0] & ~ok
-            label[inside] = name
-            ok |= inside
-        return ok, label
-
-    return predicate
-
-
 def _each_ends_in(bodies: dict[str, str], zones: dict[str, str]):
     """Success: some body's centre ends inside a box site; label = which ends where.
 
     The label joins `body_zone` for every body that ends in a zone, in the
     order of `bodies` (e.g. "a_north+b_south").
     """
-    checks = {name: _ends_in_any(body, zones) for name, body in bodies.items()}
+    checks = {name: costs.ends_in_any(body, zones) for name, body in bodies.items()}
 
     def predicate(replay):
         parts = []
@@ -223,7 +207,7 @@ def rolling_ball() -> Task:
         task.contact(geom, "ball", geom)
     zones = {"north": "zone_north", "south": "zone_south"}
     task.cost("zone", costs.reach("ball", list(zones.values()), when="final"))
-    task.success(_ends_in_any("ball", zones))
+    task.success(costs.ends_in_any("ball", zones))
     task.display(trace=["ball"])
     return task
 
@@ -311,7 +295,7 @@ def pusher() -> Task:
     zones = {"north": "zone_north", "south": "zone_south"}
     task.cost("aim", costs.aim("pusher", "crate"))
     task.cost("zone", costs.reach("crate", list(zones.values()), when="final"))
-    task.success(_ends_in_any("crate", zones))
+    task.success(costs.ends_in_any("crate", zones))
     task.display(trace=["crate", "pusher"], force=[("pusher", "crate")])
     return task
 
@@ -378,7 +362,7 @@ def crate_ledge() -> Task:
     zones = {"north": "zone_north", "east": "zone_east", "south": "zone_south"}
     task.cost("aim", costs.aim("pusher", "crate"))
     task.cost("zone", costs.reach("crate", list(zones.values()), when="final"))
-    task.success(_ends_in_any("crate", zones))
+    task.success(costs.ends_in_any("crate", zones))
     task.display(trace=["crate", "pusher"], force=[("pusher", "crate")])
     return task
 

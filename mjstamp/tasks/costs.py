@@ -213,3 +213,32 @@ def ends_in(body: str, site: str):
         return predicate
 
     return Bound(make)
+
+
+def ends_in_any(body: str, sites: Mapping[str, str]):
+    """Success predicate: the body's centre ends inside one of several box sites.
+
+    Args:
+      body: body name.
+      sites: {label: box site name}; the label of the first site (in this
+        order) the body ends in becomes part of the task plan.
+
+    Returns:
+      fn(replay) -> (ok (n,) bool, label (n,) str; "" where in none).
+    """
+
+    def make(scene):
+        checks = {label: ends_in(body, site).bind(scene) for label, site in sites.items()}
+
+        def predicate(replay):
+            ok = np.zeros(replay.qpos.shape[0], bool)
+            label = np.full(len(ok), "", dtype=object)
+            for name, check in checks.items():
+                inside = check(replay)[0] & ~ok
+                label[inside] = name
+                ok |= inside
+            return ok, label
+
+        return predicate
+
+    return Bound(make)
