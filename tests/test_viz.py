@@ -261,8 +261,10 @@ def test_root_recentres_the_scene_and_camera_sees_it(toy_model):
     d = mujoco.MjData(toy_model)
     mujoco.mj_kinematics(toy_model, d)
     center, radius = viz_scene.scene_bounds(toy_model, d)
-    # The floor (2 x 1 m) and the wall bound the scene: centre near x = 0, radius ~1.2 m.
-    assert 1.0 < radius < 1.5
+    # What lies on the floor bounds the scene, not the floor (2 x 1 m): the post and the
+    # pill at x = -0.6, the wall at x = 0.75, the egg, tet and bumps at |y| = 0.35-0.45.
+    np.testing.assert_allclose(center[:2], [0.04, 0.03], atol=0.01)
+    assert 0.75 < radius < 0.9
     root = _by_path(cmds, SetTransform)["/meshcat/mjstamp"][-1].matrix
     np.testing.assert_allclose(root[:3, 3], -center)
     cam = _by_path(cmds, SetProperty)["/Cameras/default/rotated/<object>"][-1].value
