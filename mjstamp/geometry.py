@@ -57,7 +57,11 @@ def mujoco_rgba(m: mujoco.MjModel, kind: str, i: int) -> np.ndarray:
     """(4,) colour of geom or site `i` as MuJoCo's renderer gives it.
 
     A material's rgba wins only where the element keeps the default rgba
-    (MuJoCo's rule in mjv_addGeoms); an explicit rgba beats the material.
+    (MuJoCo's rule in mjv_addGeoms); an explicit rgba beats the material. A
+    material with a colour texture (dm_control's checkered ground, a textured
+    mesh) is drawn by MuJoCo as texel × rgba: here its mean texel stands in
+    for the texture (the PNGs and meshcat draw flat colours), or a textured
+    ground drawn with its plain white rgba would be white.
 
     Args:
       m: the model.
@@ -68,7 +72,24 @@ def mujoco_rgba(m: mujoco.MjModel, kind: str, i: int) -> np.ndarray:
     matid = getattr(m, f"{kind}_matid")[i]
     if matid >= 0 and np.allclose(rgba, DEFAULT_RGBA):
         rgba = np.array(m.mat_rgba[matid], np.float32)
+    if matid >= 0:
+        rgba[:3] *= _mean_texel(m, int(matid))
     return rgba
+
+
+def _mean_texel(m: mujoco.MjModel, matid: int) -> np.ndarray:
+    """(3,) mean colour in [0, 1] of material `matid`'s colour texture; ones without one."""
+    texid = np.atleast_1d(m.mat_texid[matid])
+    tex = int(texid[int(mujoco.mjtTextureRole.mjTEXROLE_RGB)] if len(texid) > 1 else texid[0])
+    if tex < 0:
+        return np.ones(3, np.float32)
+    c = int(m.tex_nchannel[tex])
+    n = int(m.tex_width[tex]) * int(m.tex_height[tex]) * c
+    adr = int(m.tex_adr[tex])
+    texels = np.asarray(m.tex_data[adr : adr + n], np.float32).reshape(-1, c)
+    if c < 3:  # a grey (luminance) texture
+        return np.full(3, texels[:, 0].mean() / 255.0, np.float32)
+    return texels[:, :3].mean(axis=0) / 255.0
 
 
 def drawn_rgba(m: mujoco.MjModel, kind: str, i: int) -> np.ndarray:

@@ -123,6 +123,37 @@ def test_colours_follow_mujoco(replay):
     np.testing.assert_allclose(goal, [0.1, 0.8, 0.1, 0.8 * geometry.SITE_OPACITY], rtol=1e-6)
 
 
+TEXTURED_XML = """
+<mujoco>
+  <asset>
+    <texture name="grid" type="2d" builtin="checker" rgb1="0.2 0.3 0.4" rgb2="0.6 0.7 0.8"
+             width="64" height="64"/>
+    <material name="ground" texture="grid" rgba="1 1 1 1"/>
+    <material name="tinted" texture="grid" rgba="0.5 1 1 0.7"/>
+  </asset>
+  <worldbody>
+    <geom name="ground" type="plane" size="1 1 0.1" material="ground"/>
+    <geom name="tinted" type="box" size="0.1 0.1 0.1" material="tinted"/>
+    <geom name="own" type="box" size="0.1 0.1 0.1" material="ground" rgba="0 1 0 1"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_textured_materials_are_their_mean_texel_times_rgba():
+    """A flat colour for MuJoCo's texel × rgba: the texture's mean times rgba.
+
+    A checker's mean is the mean of its two colours; without it dm_control's textured white
+    ground would be drawn white.
+    """
+    m = mujoco.MjModel.from_xml_string(TEXTURED_XML)
+    mean = (np.array([0.2, 0.3, 0.4]) + [0.6, 0.7, 0.8]) / 2
+    rgba = {n: geometry.mujoco_rgba(m, "geom", m.geom(n).id) for n in ("ground", "tinted", "own")}
+    np.testing.assert_allclose(rgba["ground"], [*mean, 1], atol=3e-3)  # texels are bytes
+    np.testing.assert_allclose(rgba["tinted"], [0.5 * mean[0], *mean[1:], 0.7], atol=3e-3)
+    np.testing.assert_allclose(rgba["own"], [0, mean[1], 0, 1], atol=3e-3)
+
+
 def _playback(replay, tmp_path):
     """A results directory holding the replay, opened and played at every saved state."""
     m, qpos0, qvel0, qpos, qvel, ctrl, _ = replay

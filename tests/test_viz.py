@@ -261,8 +261,10 @@ def test_root_recentres_the_scene_and_camera_sees_it(toy_model):
     d = mujoco.MjData(toy_model)
     mujoco.mj_kinematics(toy_model, d)
     center, radius = viz_scene.scene_bounds(toy_model, d)
-    # The floor (2 x 1 m) and the wall bound the scene: centre near x = 0, radius ~1.2 m.
-    assert 1.0 < radius < 1.5
+    # What lies on the floor bounds the scene, not the floor (2 x 1 m): the post and the
+    # pill at x = -0.6, the wall at x = 0.75, the egg, tet and bumps at |y| = 0.35-0.45.
+    np.testing.assert_allclose(center[:2], [0.04, 0.03], atol=0.01)
+    assert 0.75 < radius < 0.9
     root = _by_path(cmds, SetTransform)["/meshcat/mjstamp"][-1].matrix
     np.testing.assert_allclose(root[:3, 3], -center)
     cam = _by_path(cmds, SetProperty)["/Cameras/default/rotated/<object>"][-1].value
@@ -661,3 +663,156 @@ def test_cli_view_html(toy_results, tmp_path, capsys):
     assert main(["view", str(toy_results), "--task-plan", "push-far", "--html", str(out)]) == 0
     assert capsys.readouterr().err.strip() == f"wrote {out} (2 plans)"
     assert "particle 7: push-far" in out.read_text()
+
+
+# ----------------------------------------------------------------------------
+# A real robot: dm_control's Kinova Jaco (issue 30), its meshes as shipped.
+
+#: θ of two Jaco plans (velocity knots, rad/s) found while authoring the task
+#: (tests/test_jaco.py KNOWN: 10-near and 10-post); playback only needs them to move.
+JACO_THETA = {
+    "10-near": [0.1721, -0.2893, -0.5768, -0.1934, 0.1253, 0.1651, 0.0427, 0.0918, 0.0174],
+    "10-post": [-0.2059, -0.4395, -0.0624, 0.1185, -0.1077, -0.1792, -0.0382, -0.1206, -0.1637],
+}
+
+
+@pytest.fixture(scope="module")
+def jaco_results(tmp_path_factory):
+    """A Jaco results directory as `solve --out` writes it, from two plans replayed in C.
+
+    No solve: the task's own inputs (θ -> controls), MuJoCo C steps, `results.save` with
+    the task's scene, the path `SolveResult.save` takes (seconds, where a solve of the arm
+    takes minutes).
+    """
+    pytest.importorskip("dm_control")
+    from mjstamp.tasks import jaco, load  # noqa: F401 - importing jaco registers the task
+
+    problem = load("jaco")[0].build()
+    m = problem.scene.m
+    theta = np.array(list(JACO_THETA.values()))
+    qpos0, qvel0, ctrl = problem.inputs(theta, xp=np)
+    runs = []
+    for i in range(len(theta)):
+        d = mujoco.MjData(m)
+        d.qpos[:], d.qvel[:] = qpos0[i], qvel0[i]
+        out = {k: [] for k in ("qpos", "qvel", "ctrl", "xpos")}
+        for t in range(ctrl.shape[1]):
+            d.ctrl[:] = ctrl[i, t]
+            mujoco.mj_step(m, d)
+            mujoco.mj_kinematics(m, d)
+            for k in out:
+                out[k].append(np.array(getattr(d, k)))
+        runs.append({k: np.array(v) for k, v in out.items()})
+    traj = {"particle": np.arange(len(theta)), "qpos0": np.asarray(qpos0, float),
+            "qvel0": np.asarray(qvel0, float),
+            **{k: np.array([r[k] for r in runs]) for k in runs[0]},
+            "timestep": np.float64(m.opt.timestep)}
+    plans = list(JACO_THETA)
+    summary = {
+        "task": "jaco", "config": {}, "declaration": problem.describe(),
+        "plans": [{"particle": i, "task_plan": p, "predicted_task_plan": p, "verified": True,
+                   "cost": float(i), "motion_plan": {"velocity": JACO_THETA[p]}}
+                  for i, p in enumerate(plans)],
+        "task_plans": [{"task_plan": p, "code": "", "plans": 1, "verified": 1,
+                        "verified_share": 1.0, "best_cost": float(i)}
+                       for i, p in enumerate(plans)],
+    }
+    particles = {"verified": np.ones(len(plans), bool), "returned": np.ones(len(plans), bool),
+                 "task_plan": np.array(plans)}
+    path = tmp_path_factory.mktemp("jaco") / "res"
+    path.mkdir()
+    results.save(path, summary, {"trajectories": traj, "particles": particles}, model=m)
+    page = path / "jaco.html"
+    return path, m, viz.write_html(path, page, task="jaco"), page
+
+
+def test_jaco_page_holds_the_robot_meshes_as_shipped(jaco_results):
+    path, m_task, pb, page = jaco_results
+    m = viz.load_results(path, task="jaco").model  # scene.mjb loads, meshes and all
+    assert (m.nmesh, int(m.mesh_vertnum.sum())) == (9, 4030)
+    np.testing.assert_array_equal(m.mesh_vert, m_task.mesh_vert)
+    objects = {p: c[-1].object.lower() for p, c in _by_path(pb.commands, SetObject).items()}
+    drawn = set()
+    for g in np.flatnonzero(m.geom_type == mujoco.mjtGeom.mjGEOM_MESH):
+        mesh = int(m.geom_dataid[g])
+        # dm_control's names hold '/' (jaco_arm/base), a meshcat path separator: '_'.
+        body = viz_scene.body_name(m, int(m.geom_bodyid[g]))
+        name = viz_scene.clean_name(m.geom(g).name, "")
+        geometry = objects[f"/meshcat/mjstamp/bodies/{body}/geoms/{name}"]["geometries"][0]
+        v0, nv = m.mesh_vertadr[mesh], m.mesh_vertnum[mesh]
+        # The visual mesh, every vertex: not the convex hull MuJoCo and MJX collide
+        # (the fingers' are capped at 24 vertices by the task).
+        np.testing.assert_allclose(_vertices(geometry), m.mesh_vert[v0 : v0 + nv], atol=1e-6)
+        faces = np.frombuffer(geometry["data"]["index"]["array"].data, np.uint32)
+        np.testing.assert_array_equal(faces.reshape(-1, 3), m.mesh_face[
+            m.mesh_faceadr[mesh] : m.mesh_faceadr[mesh] + m.mesh_facenum[mesh]])
+        drawn.add(mesh)
+    assert drawn == set(range(9))
+    # The camera frames the arm, the brick and the goals, not dm_control's 2 m floor.
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    center, radius = viz_scene.scene_bounds(m, d)
+    assert 0.3 < radius < 0.6
+    for point in (d.xpos[m.body("brick/").id], d.site_xpos[m.site("goal_post").id],
+                  d.site_xpos[m.site("jaco_arm/jaco_hand/pinchsite").id]):
+        assert np.linalg.norm(point - center) < radius
+    # The arena's textured ground is drawn in its texture's colour (dark blue), not white.
+    ground = objects["/meshcat/mjstamp/bodies/world/geoms/ground"]["materials"][0]["color"]
+    assert ground >> 16 < 0x40 and ground & 0xFF > 0x40
+    # Size: meshcat's viewer (~0.85 MB), the nine meshes and the keyframes of both plans.
+    assert page.stat().st_size < 2_000_000
+
+
+@needs_chromium
+def test_jaco_page_renders_in_headless_chromium(jaco_results, tmp_path):
+    _, _, pb, page = jaco_results
+    png = tmp_path / "jaco.png"
+    at = pb.segments[1].start + 0.9  # the second plan, its fist at the brick
+    dom = _chromium(f"{page.as_uri()}#t={at:.2f}", tmp_path, "--dump-dom", f"--screenshot={png}")
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    tag = re.search(r"<body([^>]*)>", dom.stdout).group(1)
+    state = dict(re.findall(r'data-mjstamp-(\w+)="([^"]*)"', tag))
+    assert int(state["loaded"]) == len(pb.commands)
+    assert state["segment"] == "1"
+    from PIL import Image
+
+    img = np.asarray(Image.open(png).convert("RGB"), np.int16)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    assert img.std() > 20  # not a blank page
+    # The arm's dark grey links (0.1 0.1 0.1, shaded) fill a good part of the view, on
+    # the arena's blue-grey ground; the brick (0.8 0.3 0.2) shows beside the fist.
+    assert ((r < 45) & (g < 45) & (b < 45)).mean() > 0.02, "arm meshes not drawn"
+    assert ((b > r + 15) & (b < 130) & (r < 90)).mean() > 0.3, "ground not drawn"
+    assert ((r > 150) & (r > g + 60) & (b < 90)).sum() > 30, "brick not drawn"
+
+
+def test_jaco_perturbed_replays_copy_only_what_they_move(jaco_results, tmp_path):
+    """Only what the perturbed replays move gets see-through copies.
+
+    The brick's position noise moves the brick by centimetres and the servoed arm by
+    under half a millimetre; copying the arm would put every link's mesh into the page
+    once per plan and replay.
+    """
+    path, m, _, plain = jaco_results
+    scored = tmp_path / "scored"
+    shutil.copytree(path, scored)
+    data = json.loads((scored / "plans.json").read_text())
+    data["robustness"] = {
+        "samples": 8, "seed": 0, "seconds": 0.1, "rollouts": 16, "declared": True,
+        "scored_plans": 2, "median": 0.5,
+        "uncertain": [{"kind": "position", "names": ["brick/"], "spread": 0.005,
+                       "distribution": "normal"}],
+    }
+    (scored / "plans.json").write_text(json.dumps(data))
+    page = tmp_path / "ghosts.html"
+    pb = viz.write_html(scored, page, perturbed=8)
+    [anim] = [c for c in pb.commands if isinstance(c, SetAnimation)]
+    ghosts = [p.lower().split("/plans/")[1] for p in anim.animation.clips if "/ghosts/" in
+              p.lower()]  # "00/ghosts/03/brick_": plan, replay, body
+    moving = {viz_scene.body_name(m, b) for b in range(1, m.nbody) if m.body_weldid[b]}
+    copied = {g.rsplit("/", 1)[1] for g in ghosts}
+    assert copied == {"brick_"} and len(ghosts) == 2 * 8  # two plans, eight replays
+    assert "jaco_arm_b_1" in moving  # the shoulder moves, but as its servo says in every draw
+    # The brick's copies and their keyframes: 0.15 MB over the page without them (1.49 MB);
+    # copying every moving body, as before, added 7.0 MB (the arm's meshes, 16 times).
+    assert page.stat().st_size - plain.stat().st_size < 300_000

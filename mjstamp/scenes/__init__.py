@@ -7,19 +7,27 @@ rollouts and their C replay, the gradient-safe patch of MJX's solver
 distances of geom pairs, what MJX cannot collide (`collisions`), the fidelity
 of the gradient model (`fidelity`) and the check of a scene (`check`).
 
-What it may import: mujoco, mujoco.mjx, jax, numpy, and of mjstamp only
+What it may import: mujoco, mujoco.mjx, jax, numpy, the optional
+`mujoco_menagerie` (inside `Scene.menagerie` only), and of mjstamp only
 `errors`, `fileio` and `kinematics`; never tasks, solvers or figures.
 """
 
 from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.rollout import FIELDS, build_rollout, replay
-from mjstamp.scenes.scene import GradOptions, Scene, package_model_path, shipped_models
+from mjstamp.scenes.scene import (
+    GradOptions,
+    Scene,
+    menagerie_model_path,
+    package_model_path,
+    shipped_models,
+)
 
 __all__ = [
     "FIELDS",
     "GradOptions",
     "Scene",
     "build_rollout",
+    "menagerie_model_path",
     "mjx",
     "package_model_path",
     "replay",

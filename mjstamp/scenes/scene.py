@@ -214,6 +214,73 @@ def shipped_models() -> list[str]:
     return sorted(p.name[:-4] for p in root.iterdir() if p.name.endswith(".xml"))
 
 
+MENAGERIE_PACKAGE = "mujoco-menagerie"  # pip name of the mujoco_menagerie index
+
+
+def menagerie_model_path(robot: str, entry: str | None = None, *,
+                         download: bool = True) -> Path:
+    """Path of a MuJoCo Menagerie robot's MJCF file, from the `mujoco_menagerie` package.
+
+    The package is an index: each robot is fetched from the network into its cache
+    (`~/.cache/mujoco_menagerie`, `MENAGERIE_CACHE_DIR`) on first use, and read from
+    there offline afterwards (`mujoco-menagerie prefetch NAME` fills it ahead).
+
+    Args:
+      robot: its name, as `mujoco_menagerie.names()` spells it (e.g. "franka_emika_panda").
+      entry: one of the robot's top-level MJCFs (`mujoco_menagerie.get(robot).entry_names`,
+        e.g. "scene", "mjx_scene", "panda"); None: its default scene, as
+        `mujoco_menagerie.load` picks.
+      download: fetch a robot missing from the cache; False: never touch the network.
+
+    Raises:
+      MjstampError: one line naming the robot, what is missing and what to run: the
+        package not installed, an unknown robot or entry point, a robot not cached
+        that could not (or may not) be downloaded.
+    """
+    label = f"menagerie robot {robot!r}"
+    try:
+        import mujoco_menagerie as mm  # noqa: PLC0415 - optional: only this loader needs it
+    except ImportError as e:
+        if e.name not in (None, "mujoco_menagerie"):  # installed, but a dependency is not
+            raise MjstampError(f"{label}: mujoco_menagerie does not import ({_one_line(e)})"
+                               ) from None
+        raise MjstampError(
+            f"{label}: the mujoco_menagerie package is not installed; run `pip install "
+            f"{MENAGERIE_PACKAGE}` (it downloads each robot on first use, or ahead with "
+            f"`mujoco-menagerie prefetch {robot}`)"
+        ) from None
+    try:
+        record = mm.get(robot)
+    except LookupError as e:
+        names = mm.names()
+        near = list(getattr(e, "suggestions", None) or [])
+        hint = f"did you mean {near[0]!r}? " if near else ""
+        some = valid_list(names) if len(names) <= 6 else (
+            f"{', '.join(names[:6])}, ... ({len(names)} in all; `mujoco-menagerie names` "
+            "lists them)")
+        raise MjstampError(f"unknown menagerie robot {robot!r}; {hint}valid: {some}") from None
+    if entry is not None and entry not in record.entry_names:
+        raise MjstampError(
+            f"{label} has no entry point {entry!r}; valid: {valid_list(record.entry_names)}"
+        )
+    cache = mm.Cache()
+    fetch = f"run `mujoco-menagerie prefetch {robot}` where there is network"
+    if not download and not cache.root and not cache.is_cached(record):
+        raise MjstampError(
+            f"{label} is not in the menagerie cache ({cache.dir}) and download=False; {fetch}, "
+            "or set MENAGERIE_CACHE_DIR to a cache that holds it"
+        )
+    try:
+        return Path(record.xml(entry, cache))
+    except mm.DownloadError as e:
+        raise MjstampError(
+            f"{label} is not in the menagerie cache ({cache.dir}) and could not be downloaded "
+            f"({_one_line(e)}); {fetch}, or set MENAGERIE_CACHE_DIR to a cache that holds it"
+        ) from None
+    except mm.MenagerieError as e:
+        raise MjstampError(f"{label}: {_one_line(e)}") from None
+
+
 class Scene:
     """An MJCF scene: MuJoCo model, gradient-safe MJX model, and resolved names.
 
@@ -240,7 +307,9 @@ class Scene:
 
         Args:
           source: an MJCF file path, an MJCF XML string, or a `dm_control.mjcf`
-            RootElement.
+            RootElement (its mesh assets included). By name: `Scene.shipped(name)`
+            for mjstamp's own scenes, `Scene.menagerie(robot)` for a MuJoCo
+            Menagerie robot (the optional `mujoco_menagerie` package and its cache).
           grad_options: gradient-safe solver options (default `GradOptions()`,
             then MJCF `<custom>` overrides). Keyword `overrides` (e.g.
             `ls_iterations=8`) replace single fields on top.
@@ -312,6 +381,31 @@ class Scene:
         if name not in names:
             raise MjstampError(f"unknown scene {name!r}; valid: {valid_list(names)}")
         return cls(package_model_path(f"{name}.xml"), name=name, **kwargs)
+
+    @classmethod
+    def menagerie(cls, robot: str, entry: str | None = None, *, download: bool = True,
+                  **kwargs) -> Scene:
+        """Loads a MuJoCo Menagerie robot by name, through the `mujoco_menagerie` package.
+
+            Scene.menagerie("franka_emika_panda", "mjx_scene")
+
+        Where a robot has an MJX entry point (`mjx_scene`: primitive collision geoms,
+        solver settings tuned for MJX) it is the one to plan on; the default scene
+        collides the visual meshes. See `menagerie_model_path` for `entry`,
+        `download` and the errors (one line each: package not installed, unknown
+        robot, not cached and no network).
+
+        Args:
+          robot: its name (`mujoco_menagerie.names()`); also the scene's `name`
+            unless one is given.
+          entry: its entry point; None: its default scene.
+          download: fetch it when the cache lacks it; False: the cache or an error.
+          **kwargs: as `Scene` (`name`, `grad_options`, `precision`, single
+            `GradOptions` fields).
+        """
+        path = menagerie_model_path(robot, entry, download=download)
+        kwargs.setdefault("name", robot)
+        return cls(path, **kwargs)
 
     def __repr__(self) -> str:
         m = self.m

@@ -57,6 +57,12 @@ ARROW_FRACTION = 0.2
 ARROW_CAP = 2.0
 SERVER_START_S = 30.0  # a cold Python start of tornado + zmq takes ~1 s; be patient on CI
 GHOST_OPACITY = 0.25  # perturbed replays: see-through copies of the moving bodies
+# A body gets see-through copies only where a perturbed replay moves some point of it this
+# fraction of the scene radius off its nominal pose (0.5 mm on the Jaco's table, under a
+# pixel of an 800-pixel view): a copy inside its opaque original cannot be seen, and a
+# robot arm that follows its servos whatever the brick does would copy every link's mesh
+# into the page once per replay (8 replays of 2 Jaco plans: 8.5 MB, 1.6 MB without).
+GHOST_MIN_PARTING = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -281,7 +287,7 @@ def build_playback(
       loop: repeat the whole timeline forever (else play it once).
       perturbed: with each plan, play this many of the perturbed replays behind
         its robustness score (`verify.perturbed_replays`) as translucent copies of
-        the moving bodies; 0: none.
+        the moving bodies they move off the plan's own (`GHOST_MIN_PARTING`); 0: none.
 
     Returns:
       A `Playback` holding the commands and the timeline (not shown anywhere yet).
@@ -312,13 +318,15 @@ def build_playback(
     if pairs and len(magnitudes):
         force_scale = ARROW_FRACTION * radius / float(np.percentile(magnitudes, 90))
 
+    parted = [_parted(m, frames, g, GHOST_MIN_PARTING * radius)
+              for frames, g in zip(replays, ghosts, strict=True)]
     timeline = _Timeline(m, pairs, len(entries), force_scale, ARROW_CAP * ARROW_FRACTION * radius)
     segments = []
     for k, (entry, frames) in enumerate(zip(entries, replays, strict=True)):
         start, end = timeline.add(k, frames, hold_frames=max(1, round(hold * fps)),
-                                  ghosts=ghosts[k])
+                                  ghosts=ghosts[k], ghost_bodies=parted[k])
         commands += _trace_lines(m, k, frames, traces)
-        commands += _ghost_objects(m, k, len(ghosts[k]))
+        commands += _ghost_objects(m, k, len(ghosts[k]), parted[k])
         score = entry.get("robustness")
         segments.append(Segment(
             particle=int(entry["particle"]), task_plan=str(entry["task_plan"]),
@@ -344,13 +352,36 @@ def _ghost_path(m: mujoco.MjModel, k: int, j: int, b: int):
                              scene_mod.body_name(m, b))
 
 
-def _ghost_objects(m: mujoco.MjModel, k: int, count: int) -> list:
-    """See-through copies of the moving bodies' shown geoms, one set per perturbed replay."""
+def _parted(m: mujoco.MjModel, nominal: geometry.Frames, ghosts: list[geometry.Frames],
+            tol: float) -> list[int]:
+    """Moving bodies that some perturbed replay moves more than `tol` (m) off the nominal.
+
+    A body's parting at a frame: its origin's distance plus the angle between its two
+    orientations times its reach (the farthest point of its geoms from its origin), a
+    bound on how far any point of it moved.
+    """
+    moving = _moving(m)
+    if not ghosts or not moving:
+        return []
+    reach = np.zeros(m.nbody)
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        reach[b] = max(reach[b], float(np.linalg.norm(m.geom_pos[g]) + m.geom_rbound[g]))
+    worst = np.zeros(m.nbody)
+    for ghost in ghosts:
+        shift = np.linalg.norm(ghost.xpos - nominal.xpos, axis=-1)  # (F, nbody)
+        dot = np.clip(np.abs(np.sum(ghost.xquat * nominal.xquat, axis=-1)), 0.0, 1.0)
+        worst = np.maximum(worst, (shift + 2 * np.arccos(dot) * reach).max(axis=0))
+    return [b for b in moving if worst[b] > tol]
+
+
+def _ghost_objects(m: mujoco.MjModel, k: int, count: int, bodies: list[int]) -> list:
+    """See-through copies of `bodies`' shown geoms, one set per perturbed replay."""
     if not count:
         return []
-    moving = set(_moving(m))
+    bodies = set(bodies)
     objs = [o for o in scene_mod.scene_objects(m)
-            if o.kind == "geom" and o.visible and o.body in moving]
+            if o.kind == "geom" and o.visible and o.body in bodies]
     out = []
     for j in range(count):
         for o in objs:
@@ -385,8 +416,10 @@ class _Timeline:
         self.next = 0  # first frame of the next plan
 
     def add(self, k: int, frames: geometry.Frames, *, hold_frames: int,
-            ghosts: list[geometry.Frames] = ()) -> tuple[int, int]:
-        """Keys plan k's frames (and its perturbed replays', `ghosts`), then holds the last.
+            ghosts: list[geometry.Frames] = (), ghost_bodies: list[int] = ()) -> tuple[int, int]:
+        """Keys plan k's frames, then holds the last; with its perturbed replays' too.
+
+        `ghosts` are the replays' frames, `ghost_bodies` the bodies copied in them.
 
         Returns (first, last moving frame).
         """
@@ -396,7 +429,7 @@ class _Timeline:
         for b, tracks in self.bodies.items():
             self._key_body(tracks, keys, states, frames, b)
         for j, ghost in enumerate(ghosts):
-            for b in self.bodies:
+            for b in ghost_bodies:
                 tracks = self.ghosts.setdefault((k, j, b), _Tracks())
                 self._key_body(tracks, keys, states, ghost, b)
         for p, tracks in self.arrows.items():

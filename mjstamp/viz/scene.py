@@ -250,28 +250,54 @@ def scene_objects(m: mujoco.MjModel) -> list[SceneObject]:
     return out
 
 
+def _site_half(m: mujoco.MjModel, i: int) -> np.ndarray:
+    """(3,) half-extents of site `i` in its own frame (MuJoCo's size conventions)."""
+    t = mujoco.mjtGeom
+    r, h, z = (float(x) for x in m.site_size[i])
+    gtype = m.site_type[i]
+    if gtype == t.mjGEOM_SPHERE:
+        return np.full(3, r)
+    if gtype == t.mjGEOM_CAPSULE:
+        return np.array([r, r, r + h])
+    if gtype == t.mjGEOM_CYLINDER:
+        return np.array([r, r, h])
+    return np.array([r, h, z])  # box, ellipsoid
+
+
 def scene_bounds(m: mujoco.MjModel, d) -> tuple[np.ndarray, float]:
-    """(center (3,), radius) of a sphere around the drawn scene at the pose in `d`.
+    """(center (3,), radius) of a sphere around what the scene is about, at the pose in `d`.
 
-    `d` is an MjData after kinematics or a `geometry.Pose`.
-
-    N.B. not `m.stat`, nor the geoms' bounding spheres: both count a long wall
-    as a ball as wide as it is long and put the camera far from a small table.
-    The geoms' own boxes (`geom_aabb`), turned into the world, fit closely.
+    `d` is an MjData after kinematics or a `geometry.Pose`. The box bounds every
+    geom but planes, and every shown site (goal regions); planes count only in
+    a scene with nothing else. N.B. a floor is not what a plan is about:
+    dm_control's arena is a 2 m square under a 1 m arm and a 5 cm brick, and
+    framing it put the brick at a few pixels (`Scene.length_scale` leaves
+    planes out for the same reason). Not `m.stat` either, nor the geoms'
+    bounding spheres: both count a long wall as a ball as wide as it is long
+    and put the camera far from a small table. The geoms' own boxes
+    (`geom_aabb`), turned into the world, fit closely.
     """
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    plane = mujoco.mjtGeom.mjGEOM_PLANE
+    boxes, planes = [], []
     for i in range(m.ngeom):
         rot = d.geom_xmat[i].reshape(3, 3)
         center, half = m.geom_aabb[i][:3], np.array(m.geom_aabb[i][3:])
-        if m.geom_type[i] == mujoco.mjtGeom.mjGEOM_PLANE:  # its box is infinite
+        if m.geom_type[i] == plane:  # its box is infinite: its drawn size instead
             center, half = np.zeros(3), np.array([m.geom_size[i][0], m.geom_size[i][1], 0.0])
             if not half[:2].all():
                 continue
         mid = d.geom_xpos[i] + rot @ center
         reach = np.abs(rot) @ half
-        lo, hi = np.minimum(lo, mid - reach), np.maximum(hi, mid + reach)
-    if not np.all(np.isfinite(lo)):
+        (planes if m.geom_type[i] == plane else boxes).append((mid - reach, mid + reach))
+    for i in range(m.nsite):
+        if geometry.shown(m, "site", i):
+            reach = np.abs(d.site_xmat[i].reshape(3, 3)) @ _site_half(m, i)
+            boxes.append((d.site_xpos[i] - reach, d.site_xpos[i] + reach))
+    boxes = boxes or planes
+    if not boxes:
         return np.asarray(m.stat.center, np.float64), max(float(m.stat.extent), 0.1)
+    lo = np.min([b[0] for b in boxes], axis=0)
+    hi = np.max([b[1] for b in boxes], axis=0)
     return (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 0.05)
 
 
