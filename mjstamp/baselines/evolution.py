@@ -181,6 +181,7 @@ def run_cmaes(task, *, target: int | None = None, cap_s: float = 600.0, seed: in
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
             raise MjstampError(f"{name}={value!r} must be a number in (0, 1) (box widths)")
     problem = as_problem(task)
+    Tracker(problem, target, cap_s)  # N.B. checks target and cap_s before any work
     low, high = problem.low.astype(np.float64), problem.high.astype(np.float64)
     width = high - low
     d = len(low)
