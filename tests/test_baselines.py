@@ -1,4 +1,4 @@
-"""Baselines (enumerate, blocking, cem) on the tiny task; compare's and the CLI's bad input."""
+"""Baselines on the tiny task; compare's and the CLI's bad input; CMA-ES on a test function."""
 
 import subprocess
 import sys
@@ -16,7 +16,8 @@ from mjstamp.errors import MjstampError
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = {"particles": 8, "stamp.sgd_max_iters": 40}
-SETTINGS = {"enumerate": {"starts": 8}, "blocking": {"starts": 8}, "cem": {"population": 32}}
+SETTINGS = {"enumerate": {"starts": 8}, "blocking": {"starts": 8}, "cem": {"population": 32},
+            "cmaes": {"population": 8}}
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +25,7 @@ def tiny(tiny_task):
     return tiny_task()
 
 
-@pytest.mark.parametrize("method", ["enumerate", "blocking", "cem"])
+@pytest.mark.parametrize("method", ["enumerate", "blocking", "cem", "cmaes"])
 def test_each_baseline_finds_a_plan_that_verifies(tiny, method):
     r = baselines.run(method, tiny, target=1, cap_s=300, seed=0, config=SMALL,
                       **SETTINGS[method])
@@ -77,7 +78,7 @@ def _discrete_task(tiny_mjcf):
     return task
 
 
-@pytest.mark.parametrize("method", ["enumerate", "blocking", "cem"])
+@pytest.mark.parametrize("method", ["enumerate", "blocking", "cem", "cmaes"])
 def test_baselines_handle_discrete_actions(tiny_xml, method):
     task = _discrete_task(tiny_xml)
     r = baselines.run(method, task, target=1, cap_s=300, seed=0, config=SMALL,
@@ -86,6 +87,56 @@ def test_baselines_handle_discrete_actions(tiny_xml, method):
     f = r.found[0]
     assert f["task_plan"].split("-")[0] in ("left", "right")
     assert f["action_ids"] in (((0,),), ((1,),))
+
+
+def test_cmaes_finds_both_task_plans_of_the_tiny_task(tiny):
+    """Restarts go on after the first plan, and the Tracker keeps every one it verifies."""
+    r = baselines.run("cmaes", tiny, target=2, cap_s=300, seed=0, population=8)
+    assert r.reached and sorted(r.task_plans) == ["0-goal", "1-goal"], r.summary()
+    found_at = [f["found_at_s"] for f in r.found]
+    assert found_at == sorted(found_at) and found_at[-1] <= r.wall_s
+    for f in r.found:
+        theta = np.asarray([f["theta"]])
+        decoded = verify.decode(tiny, verify.simulate_c(tiny, theta), theta)
+        assert decoded.ok[0] and decoded.plan[0] == f["task_plan"]
+
+
+def test_cmaes_minimises_an_ill_conditioned_rotated_ellipsoid():
+    """CMA-ES learns a rotated ellipsoid of condition 10^6 (Hansen 2016's test function).
+
+    With its covariance frozen (learning rates 0) it stays above 1e-12 for 1500 generations.
+    """
+    from mjstamp.baselines.evolution import CMAES
+
+    n = 8
+    rng = np.random.default_rng(0)
+    rotation, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    scales = 10.0 ** (6 * np.arange(n) / (n - 1))
+
+    def f(x):
+        return np.sum(scales * (x @ rotation.T) ** 2, axis=-1)
+
+    es = CMAES(np.full(n, 3.0), 1.0, 12, rng)
+    for _ in range(1500):
+        es.tell(f(es.ask()))
+        if f(es.mean) < 1e-12:
+            break
+    assert f(es.mean) < 1e-12, (es.generation, f(es.mean))
+    assert es.condition > 1e4  # it learnt the ellipsoid's shape, not only a step size
+
+
+def test_mirror_folds_the_line_into_the_unit_interval():
+    from mjstamp.baselines.evolution import mirror
+
+    inside = np.linspace(0, 1, 11)
+    np.testing.assert_allclose(mirror(inside), inside)
+    np.testing.assert_allclose(mirror(np.array([-0.2, 1.3, 2.25, -1.75, 3.5])),
+                               [0.2, 0.7, 0.25, 0.25, 0.5], atol=1e-12)
+    u = np.random.default_rng(1).normal(0, 10, 1000)
+    v = mirror(u)
+    assert np.all((v >= 0) & (v <= 1))
+    np.testing.assert_allclose(mirror(u + 2.0), v, atol=1e-9)  # period 2
+    np.testing.assert_allclose(mirror(-u), v, atol=1e-12)  # even
 
 
 def test_blocking_penalty_is_the_soft_probability_of_the_blocked_plan(tiny):
@@ -135,6 +186,12 @@ def test_enumerate_needs_symbols_or_actions(tiny_xml):
     (lambda t: baselines.run("cem", t, target=0, cap_s=10), "target=0 must be an integer"),
     (lambda t: baselines.run("cem", t, target=1, cap_s=0), "cap_s=0 must be a number"),
     (lambda t: baselines.run("cem", t, target=1, cap_s=1, population=1), "population=1"),
+    (lambda t: baselines.run("cmaes", t, target=0, cap_s=10), "target=0 must be an integer"),
+    (lambda t: baselines.run("cmaes", t, target=1, cap_s=0), "cap_s=0 must be a number"),
+    (lambda t: baselines.run("cmaes", t, target=1, cap_s=1, population=2), "population=2"),
+    (lambda t: baselines.run("cmaes", t, target=1, cap_s=1, sigma0=1.5), "sigma0=1.5"),
+    (lambda t: baselines.run("cmaes", t, target=1, cap_s=1, max_population=4),
+     "max_population=4 must be an integer >= 32"),
     (lambda t: compare(lambda: (t, None), seeds=0), "seeds=0 must be an integer >= 1"),
     (lambda t: compare(lambda: (t, None), cap_s=-5), "cap=-5 must be a number"),
     (lambda t: compare(lambda: (t, None), methods="stamp,lgp"), "unknown method 'lgp'"),

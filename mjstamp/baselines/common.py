@@ -32,7 +32,7 @@ class BaselineResult:
     """What a baseline found.
 
     Attributes:
-      method: "enumerate", "blocking" or "cem".
+      method: "enumerate", "blocking", "cem" or "cmaes".
       task: the task's name.
       seed: the seed.
       target: the distinct verified task plans asked for (None: until the cap).
@@ -41,7 +41,7 @@ class BaselineResult:
         {"task_plan", "code", "found_at_s", "theta" (list), "cost_c"}.
       wall_s: seconds used (until the target was reached, or the cap).
       reached: whether `target` distinct task plans were verified within the cap.
-      runs: optimisation runs (enumerate, blocking) or CEM generations.
+      runs: optimisation runs (enumerate, blocking) or generations (cem, cmaes).
       rollouts: particle rollouts done (MJX or MuJoCo C), verification included.
       settings: the method's own settings.
     """

@@ -7,13 +7,13 @@ import json
 from mjstamp.cli.arguments import parse_count, parse_devices, parse_seconds, task_options
 
 #: `mjstamp.baselines.compare.ALL`, spelt out: building the parser imports no JAX.
-METHODS = ("stamp", "enumerate", "blocking", "cem")
+METHODS = ("stamp", "enumerate", "blocking", "cem", "cmaes")
 
 
 def add_parser(subparsers):
     """Adds `compare` to `subparsers`; returns its parser."""
     compare = subparsers.add_parser(
-        "compare", help="time STAMP and the baselines (enumerate, blocking, cem) to the "
+        "compare", help="time STAMP and the baselines (enumerate, blocking, cem, cmaes) to the "
         "distinct verified task plans STAMP's default run finds (Table I's layout)")
     compare.add_argument("task", help="registered task name (see `mjstamp tasks`)")
     compare.add_argument("--methods", default=",".join(METHODS), metavar="M,M",

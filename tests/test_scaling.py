@@ -1,0 +1,125 @@
+"""benchmarks/scaling.py (issue 29): its families build and replay known plans in MuJoCo C.
+
+The θ below were found by `baselines.run("cmaes", task, target=1, seed=0)` on each
+member and rounded to 1e-3; each rounded θ replays to the task plan beside it.
+"""
+
+import json
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+
+from mjstamp import verify
+
+# The benchmark lives in benchmarks/ (not in the package): import it from the repository root.
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from benchmarks import scaling  # noqa: E402 - after the path set-up above
+
+KNOWN = {
+    ("arm", "k2"): ([0.532, -0.043, -0.371, -0.636], "0000-west"),
+    ("arm", "k4"): ([0.371, -0.812, -0.277, -0.192, 0.928, 0.581, 0.115, -0.186], "0100-east"),
+    ("arm", "k8"): ([0.369, -0.501, -0.752, -0.557, -0.292, 0.443, -0.173, 0.625, -0.304, 0.832,
+                     0.132, -0.735, -0.115, -0.831, 0.384, -0.684], "0100-east"),
+    ("arm", "k16"): ([-0.918, -0.827, -0.741, -0.788, -0.032, 0.224, -0.419, 0.341, -0.841,
+                      0.018, 0.133, -0.283, 0.156, -0.058, 0.443, -0.767, 0.009, -0.88, -0.491,
+                      0.259, -0.564, -0.924, 0.195, 0.74, 0.572, 0.384, 0.821, 0.53, 0.453,
+                      -0.861, 0.288, -0.779], "0100-east"),
+    ("pushing", "k1"): ([0.621, -1.999, -0.611, 0.702, 0.809, 0.65, 0.073], "west"),
+    ("pushing", "k2"): ([-2.781, -1.694, -2.207, -0.851, 2.64, 0.729, 2.157, -0.784, 0.437, 0.287,
+                         0.16, 0.004, 0.154, -0.285], "west"),
+    ("pushing", "k3"): ([-2.897, -0.76, -1.371, 2.01, -1.79, 2.104, -0.457, 2.973, 2.966, 1.333,
+                         -0.294, -1.819, 0.486, 0.423, -0.054, -0.257, 0.514, 0.455, -0.189,
+                         0.26, -0.264], "west,west"),
+    ("pushing", "k4"): ([-0.772, -2.791, -2.977, -2.227, 2.934, 2.818, -1.737, -0.115, 0.376,
+                         2.27, 1.231, -1.776, 0.02, -1.173, -0.361, 2.384, -0.287, -0.015,
+                         -0.231, 0.13, -0.137, -0.079, 0.379, 0.295, 0.061, -0.146, 0.109,
+                         0.191], "west"),
+    ("pushing", "k5"): ([-2.069, 0.839, -2.085, 1.583, 1.245, 2.807, 2.497, -1.166, 1.958, 2.145,
+                         1.94, -2.829, 2.479, -2.809, -1.256, -1.864, -0.811, -2.932, -2.14,
+                         2.505, -0.37, 0.224, -0.17, 0.162, -0.18, -0.218, 0.298, 0.255, 0.145,
+                         0.646, -0.026, -0.176, -0.149, -0.228, -0.11], "west"),
+    ("rarity", "r0.2"): ([2.73, -3.032], "0100-spot"),
+    ("rarity", "r0.1"): ([3.455, 1.047], "0000-spot"),
+    ("rarity", "r0.05"): ([3.453, 1.046], "0000-spot"),
+    ("rarity", "r0.025"): ([1.641, 0.302], "0000-spot"),
+    ("rarity", "r0.0125"): ([1.641, 0.302], "0000-spot"),
+}
+DIMS = {"arm": {"k2": 4, "k4": 8, "k8": 16, "k16": 32},
+        "pushing": {f"k{k}": 7 * k for k in range(1, 6)},
+        "rarity": {m: 2 for m in scaling.FAMILIES["rarity"]}}
+
+
+def test_every_member_has_a_known_plan():
+    assert set(KNOWN) == {(f, m) for f, members in scaling.FAMILIES.items() for m in members}
+
+
+def _replay(task, theta):
+    theta = np.atleast_2d(np.asarray(theta, np.float64))
+    return verify.decode(task, verify.simulate_c(task, theta), theta)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family, member", list(KNOWN))
+def test_member_builds_and_replays_its_known_plan(family, member):
+    task = scaling.FAMILIES[family][member]()
+    assert task.dim == DIMS[family][member]
+    theta, plan = KNOWN[family, member]
+    decoded = _replay(task, theta)
+    assert decoded.ok[0] and decoded.plan[0] == plan
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", ["arm", "rarity"])
+def test_doing_nothing_fails_on_every_member(family):
+    """θ = 0 (no torque; a cue ball at rest) moves no ball: no member may call it a success."""
+    for make in scaling.FAMILIES[family].values():
+        task = make()
+        assert not _replay(task, np.zeros(task.dim)).ok[0], task.name
+
+
+@pytest.mark.slow
+def test_rarity_radius_is_what_decides_success():
+    """The r0.2 plan leaves the target 5-20 cm from the spot: it must fail at r = 0.05."""
+    theta, _ = KNOWN["rarity", "r0.2"]
+    task = scaling.FAMILIES["rarity"]["r0.2"]()
+    end = verify.simulate_c(task, np.asarray([theta])).body_pos("target")[0, -1, :2]
+    gap = float(np.linalg.norm(end - np.asarray(scaling.SPOT)))
+    assert 0.05 < gap < 0.2, gap
+    assert not _replay(scaling.FAMILIES["rarity"]["r0.05"](), theta).ok[0]
+
+
+@pytest.mark.slow
+def test_success_share_counts_and_bounds():
+    """Successes over shots where some succeed; the rule-of-three bound 3/N where none does."""
+    task = scaling.FAMILIES["rarity"]["r0.2"]()
+    some = scaling.success_share(task, 512)
+    assert some["successes"] > 0 and not some["success_share_is_upper_bound"]
+    assert some["success_share"] == some["successes"] / 512
+    assert sum(some["sampled_task_plans"].values()) == some["successes"]
+    # A radius of 1 mm: 8 shots (seed 0) succeed with probability about 8 · 1e-6.
+    none = scaling.success_share(scaling.spot(0.001), 8)
+    assert none["successes"] == 0 and none["success_share_is_upper_bound"]
+    assert none["success_share"] == 3 / 8
+
+
+@pytest.mark.slow
+def test_scaling_runs_tiny(tmp_path):
+    path = tmp_path / "scaling.json"
+    assert scaling.main(["--tiny", "--json", str(path)]) == 0
+    out = json.loads(path.read_text())
+    assert set(out["families"]) == set(scaling.TINY)
+    for family, members in scaling.TINY.items():
+        assert list(out["families"][family]) == members
+        for member in members:
+            row = out["families"][family][member]
+            assert row["dim"] == DIMS[family][member]
+            assert 0 < row["success_share"] <= 1
+            assert set(row["methods"]) == set(scaling.METHODS)
+            for name, rec in row["methods"].items():
+                assert rec["wall_s"] <= out["budget_s"], (family, member, name)
+                assert rec["task_plans"] == len(rec["found_at_s"]) == len(rec["found"])
+                assert rec["found_at_s"] == sorted(rec["found_at_s"])
+                assert all(t <= rec["wall_s"] for t in rec["found_at_s"])
+                assert rec["first_plan_s"] == (rec["found_at_s"] or [None])[0]
