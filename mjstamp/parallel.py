@@ -120,8 +120,27 @@ def request_host_devices(n: int, *, strict: bool = True) -> None:
                 "(mjstamp.configure(devices=N) first thing in a script, or --devices N)"
             )
         return
-    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(_FLAG)]
-    os.environ["XLA_FLAGS"] = " ".join([*flags, f"{_FLAG}={n}"])
+    set_xla_flag(_FLAG, n)
+
+
+def set_xla_flag(flag: str, value, *, keep_users: bool = False) -> bool:
+    """Puts `flag=value` into $XLA_FLAGS, read once when JAX's backends start.
+
+    Args:
+      flag: e.g. "--xla_force_host_platform_device_count".
+      value: its value (bools as true/false).
+      keep_users: leave a value the user's $XLA_FLAGS already gives.
+
+    Returns:
+      whether $XLA_FLAGS now holds this value (False: the user's was kept).
+    """
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    if keep_users and any(f == flag or f.startswith(f"{flag}=") for f in flags):
+        return False
+    text = str(value).lower() if isinstance(value, bool) else str(value)
+    kept = [f for f in flags if not (f == flag or f.startswith(f"{flag}="))]
+    os.environ["XLA_FLAGS"] = " ".join([*kept, f"{flag}={text}"])
+    return True
 
 
 def join_processes(coordinator: str, num_processes: int, process_id: int, *,

@@ -231,9 +231,7 @@ def calibrate(problem: Problem, theta: np.ndarray, cfg: SolveConfig, *, progress
         )
     Progress.of(progress, "solve")(calibration.message())
     after = calibration.after
-    scene = problem.scene.with_grad_options(
-        gradient=after.gradient, iterations=after.iterations, ls_iterations=after.ls_iterations
-    )
+    scene = problem.scene.with_grad_options(**after.options())
     return problem.on_scene(scene), calibration
 
 
@@ -648,6 +646,7 @@ def _final_fidelity(problem, outcome: Outcome, calibration, stamp, n: int, theta
         "gradient": problem.scene.grad_options.gradient,
         "iterations": problem.scene.grad_options.iterations,
         "ls_iterations": problem.scene.grad_options.ls_iterations,
+        "warmstart": problem.scene.grad_options.warmstart,
         "us_per_particle_step": _us_per_particle_step(stamp.diagnostics, n, problem.horizon),
     }
     m = problem.scene.m

@@ -197,3 +197,22 @@ def test_divergence_sees_a_body_that_swings_about_its_own_origin():
     # The capsule's centre (and the COM), 0.25 m below the hinge, moves by
     # 0.25·(sin 0.5, 0, 1 − cos 0.5); the divergence is the largest coordinate.
     np.testing.assert_allclose(div, 0.25 * np.sin(0.5), rtol=1e-9)
+
+
+def test_the_last_candidate_is_the_scenes_own_solver_warm_start_and_line_search_included():
+    xml = SLIDE.replace('<option timestep="0.01"/>', '<option timestep="0.01" ls_iterations="17"/>')
+    scene = Scene(xml)
+    assert fidelity.CANDIDATES[-1] == ("implicit", None, None)
+    cal = fidelity.calibrate(scene, *shots(scene), horizon=HORIZON, cache=False,
+                             candidates=fidelity.CANDIDATES[-1:])
+    own = cal.tried[-1]
+    assert (own.gradient, own.iterations, own.ls_iterations, own.warmstart) == (
+        "implicit", scene.m.opt.iterations, 17, True)
+    assert own.p95_m == 0.0  # its C twin is the scene's own physics, bit for bit
+    assert cal.as_dict()["warmstart"] is True
+    # A scene without a warm start keeps it off in that candidate.
+    cold = Scene(xml.replace('ls_iterations="17"/>',
+                             'ls_iterations="17"><flag warmstart="disable"/></option>'))
+    again = fidelity.calibrate(cold, *shots(cold), horizon=HORIZON, cache=False,
+                               candidates=fidelity.CANDIDATES[-1:])
+    assert again.tried[-1].warmstart is False and again.tried[-1].ls_iterations == 17

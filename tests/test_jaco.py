@@ -87,3 +87,20 @@ def test_known_plans_decode_and_verify(task):
     decoded = decode(task, simulate_c(task, theta), theta)
     assert decoded.ok.all()
     assert list(decoded.plan) == list(KNOWN)
+
+
+def test_start_at_refuses_what_it_cannot_turn_in_one_line():
+    from mjstamp.errors import MjstampError
+    from mjstamp.scenes.compose import start_at
+
+    root = jaco.compose()
+    with pytest.raises(MjstampError, match=r"'jaco_arm/joint_9' is no joint of the scene; "
+                                           r"valid: .*jaco_arm/joint_1") as e:
+        start_at(root, {"jaco_arm/joint_9": 0.1})
+    assert "\n" not in str(e.value)
+    from dm_control import mjcf
+
+    slider = mjcf.from_xml_string('<mujoco><worldbody><body><joint name="s" type="slide"/>'
+                                  '<geom size="0.1"/></body></worldbody></mujoco>')
+    with pytest.raises(MjstampError, match="'s' is a slide joint; only hinges"):
+        start_at(slider, {"s": 0.1})

@@ -1,6 +1,7 @@
 """Particles sharded over host devices: the same plans as on one device, to rounding."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -100,3 +101,28 @@ def test_configure_devices_auto_keeps_a_running_jax():
     before = jax.device_count()  # N.B. JAX runs now: "auto" keeps it, never strict
     mjstamp.configure(devices="auto")
     assert jax.device_count() == before
+
+
+def test_set_xla_flag_replaces_its_own_and_keeps_the_users_when_asked(monkeypatch):
+    from mjstamp.parallel import set_xla_flag
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_a=1 --xla_cpu_use_fusion_emitters=true")
+    assert not set_xla_flag("--xla_cpu_use_fusion_emitters", False, keep_users=True)
+    assert os.environ["XLA_FLAGS"] == "--xla_a=1 --xla_cpu_use_fusion_emitters=true"
+    assert set_xla_flag("--xla_cpu_use_fusion_emitters", False)
+    assert os.environ["XLA_FLAGS"] == "--xla_a=1 --xla_cpu_use_fusion_emitters=false"
+    assert set_xla_flag("--xla_force_host_platform_device_count", 2)
+    assert os.environ["XLA_FLAGS"].split()[-1] == "--xla_force_host_platform_device_count=2"
+
+
+@pytest.mark.parametrize(("given", "expected"), [
+    ("", "--xla_cpu_use_fusion_emitters=false"),
+    ("--xla_cpu_use_fusion_emitters=true", "--xla_cpu_use_fusion_emitters=true"),
+])
+def test_configure_turns_cpu_fusion_emitters_off_unless_the_user_set_them(given, expected):
+    code = ("import os, mjstamp; mjstamp.configure(compilation_cache=False); "
+            "import jax; jax.numpy.zeros(1); print(os.environ['XLA_FLAGS'])")
+    env = {**os.environ, "XLA_FLAGS": given}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out == [expected]

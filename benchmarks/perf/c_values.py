@@ -111,8 +111,7 @@ def run_scene(name: str, *, particles: int, repeats: int, seed: int, fd_eps: flo
     say(f"{name}: calibrating the gradient model as check does")
     cal = fidelity.calibrate(scene, *inputs, progress=say)
     a = cal.after
-    scene = scene.with_grad_options(gradient=a.gradient, iterations=a.iterations,
-                                    ls_iterations=a.ls_iterations)
+    scene = scene.with_grad_options(**a.options())
     theta_j = jnp.asarray(theta, scene.dtype)
 
     # rollout-ad: check._gradients' objective and value_and_grad.

@@ -244,8 +244,7 @@ def check(
         calibration = fidelity.calibrate(scene, *inputs, tolerance=tolerance, progress=say)
         calibrated = _calibrated(calibration)
         a = calibration.after
-        scene = scene.with_grad_options(gradient=a.gradient, iterations=a.iterations,
-                                        ls_iterations=a.ls_iterations)
+        scene = scene.with_grad_options(**a.options())
     say(f"MJX rollout vs MuJoCo C with the scene's own solver ({particles} x "
         f"{draws.horizon} steps)")
     rollout = scene.rollout_fn(draws.horizon, fields=("qpos",))
@@ -277,6 +276,7 @@ def _calibrated(calibration: fidelity.Calibration) -> dict:
         "gradient": calibration.after.gradient,
         "iterations": calibration.after.iterations,
         "ls_iterations": calibration.after.ls_iterations,
+        "warmstart": calibration.after.warmstart,
         "divergence_p95_m": calibration.after.p95_m,
         "message": calibration.message(),
     }
@@ -310,6 +310,7 @@ def _report(scene, draws, particles, verdict, grads, rel, fd_eps) -> dict:
         "gradient": scene.grad_options.gradient,
         "iterations": scene.grad_options.iterations,
         "ls_iterations": scene.grad_options.ls_iterations,
+        "warmstart": scene.grad_options.warmstart,
     }
     report["problems"] = _problems(report)
     report["healthy"] = not report["problems"]

@@ -51,11 +51,21 @@ CACHE = Path.home() / ".cache" / "mjstamp" / "fidelity"
 SHARE = 0.95
 RELATIVE_TOLERANCE = 1e-3
 
-# (gradient, iterations, ls_iterations) in order of cost; iterations None: the
-# MJCF's own (a cap: the implicit loop stops at the MJCF's tolerance). Unrolled
-# cost grows about linearly in iterations: every particle runs all of them under
-# vmap, and reverse mode stores each.
-CANDIDATES: tuple[tuple[str, int | None, int], ...] = (("unrolled", 1, 4), ("implicit", None, 4))
+# (gradient, iterations, ls_iterations) in order of cost; None: the MJCF's own
+# (iterations: a cap, the implicit loop stops at the MJCF's tolerance; line
+# search None: the MJCF's line-search iterations *and* its warm start, which
+# makes the implicit model the scene's own solver). Unrolled cost grows about
+# linearly in iterations: every particle runs all of them under vmap, and
+# reverse mode stores each; the implicit loop and the line search stop at
+# their tolerances, so larger caps cost only where they are needed, and the
+# warm start gets no gradient (the implicit forward loop is stop-gradient).
+# N.B. the last candidate is for frictional pushes: the Jaco pushing a brick
+# (16 screened particles, 240 steps of 5 ms) parted from its own physics by
+# 6 cm p95 with 4 line-search steps, by 3.3-4.2 mm with 50 or 100 and no warm
+# start (the brick sticks or slips on the start the solver is given), by 0
+# with the MJCF's own settings.
+CANDIDATES: tuple[tuple[str, int | None, int | None], ...] = (
+    ("unrolled", 1, 4), ("implicit", None, 4), ("implicit", None, None))
 UNROLLED: tuple[tuple[str, int | None, int], ...] = tuple(
     ("unrolled", k, ls) for k, ls in ((1, 4), (2, 4), (3, 4), (4, 4), (6, 6), (8, 8), (16, 10))
 )
@@ -96,6 +106,7 @@ class Measurement:
     Attributes:
       gradient: "unrolled" or "implicit" (`GradOptions.gradient`).
       iterations, ls_iterations: the gradient model's solver settings.
+      warmstart: whether its solver starts from the last step's accelerations.
       median_m, p95_m, max_m: statistics of the per-particle divergence.
       seconds: wall time of the gradient model's C rollouts.
     """
@@ -107,6 +118,12 @@ class Measurement:
     p95_m: float
     max_m: float
     seconds: float
+    warmstart: bool = False
+
+    def options(self) -> dict:
+        """`Scene.with_grad_options` keywords of this setting."""
+        return {"gradient": self.gradient, "iterations": self.iterations,
+                "ls_iterations": self.ls_iterations, "warmstart": self.warmstart}
 
     def faithful(self, tolerance: float) -> bool:
         """Whether 95% of the particles (`SHARE`) stay within `tolerance`."""
@@ -156,6 +173,7 @@ class Calibration:
             "gradient": self.after.gradient,
             "iterations": self.after.iterations,
             "ls_iterations": self.after.ls_iterations,
+            "warmstart": self.after.warmstart,
             "divergence_before_median_m": self.before.median_m,
             "divergence_before_p95_m": self.before.p95_m,
             "divergence_after_median_m": self.after.median_m,
@@ -256,7 +274,8 @@ def calibrate(
       max_iterations: the budget of solver iterations: unrolled candidates with
         more are not tried and the implicit loop stops there; None: the MJCF's
         own `opt.iterations`.
-      candidates: (gradient, iterations or None, ls_iterations) in order of cost.
+      candidates: (gradient, iterations or None, ls_iterations or None) in order of
+        cost; None: the MJCF's own (line search None: its warm start too).
       cache: read and write the result on disk (~/.cache/mjstamp/fidelity),
         keyed by the compiled model, the options, the inputs and the tolerance.
       progress: status lines (`mjstamp.progress`: a callable, a `Progress`, True;
@@ -291,16 +310,17 @@ def calibrate(
         reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
     x_ref = tracked_points(scene.m, reference)
     tried: list[Measurement] = []
-    for gradient, iterations, ls in todo:
+    for gradient, iterations, ls, warm in todo:
         candidate = scene.with_grad_options(
-            gradient=gradient, iterations=iterations, ls_iterations=ls
+            gradient=gradient, iterations=iterations, ls_iterations=ls, warmstart=warm
         )
         t0 = time.perf_counter()
         qpos = replay(candidate, qpos0, qvel0, ctrl, fields=("qpos",), solver="grad")["qpos"]
         seconds = time.perf_counter() - t0
         diff = divergence(tracked_points(scene.m, qpos), x_ref)
-        tried.append(Measurement(gradient, iterations, ls, *_stats(diff), seconds))
-        say(f"{describe(gradient, iterations)}, line search {ls}: divergence p95 "
+        tried.append(Measurement(gradient, iterations, ls, *_stats(diff), seconds, warm))
+        say(f"{describe(gradient, iterations)}, line search {ls}{', warm start' if warm else ''}: "
+            f"divergence p95 "
             f"{tried[-1].p95_m:.2g} m (tolerance {tolerance:.2g} m)")
         if tried[-1].faithful(tolerance):
             break
@@ -317,16 +337,19 @@ def calibrate(
     return result
 
 
-def _settings(scene, candidates, own: int, budget: int) -> list[tuple[str, int, int]]:
+def _settings(scene, candidates, own: int, budget: int) -> list[tuple[str, int, int, bool]]:
     """The scene's configured model, then the candidates within budget, in order."""
     g = scene.grad_options
-    todo = [(g.gradient, g.iterations, g.ls_iterations)]
+    todo = [(g.gradient, g.iterations, g.ls_iterations, g.warmstart)]
+    warm = not scene.m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
     for gradient, iterations, ls in candidates:
         wanted = own if iterations is None else iterations
         if gradient == "unrolled" and wanted > budget:
             continue  # over budget; the implicit loop is capped at the budget instead
-        if (gradient, min(wanted, budget), ls) not in todo:
-            todo.append((gradient, min(wanted, budget), ls))
+        setting = (gradient, min(wanted, budget), ls, g.warmstart) if ls is not None else (
+            gradient, min(wanted, budget), max(1, int(scene.m.opt.ls_iterations)), warm)
+        if setting not in todo:
+            todo.append(setting)
     return todo
 
 

@@ -70,7 +70,7 @@ class Entry:
 
 
 _REGISTRY: dict[str, Entry] = {}
-_BUILTIN_MODULES = ("mjstamp.tasks.billiards", "mjstamp.tasks.pushing")
+_BUILTIN_MODULES = ("mjstamp.tasks.billiards", "mjstamp.tasks.pushing", "mjstamp.tasks.jaco")
 
 
 def register(

@@ -68,11 +68,11 @@ against a 0.95 mm tolerance).
 
 from __future__ import annotations
 
-import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
+from mjstamp.scenes.compose import start_at
 from mjstamp.tasks import costs, register
 from mjstamp.tasks.task import Task
 
@@ -100,7 +100,8 @@ _WORLD, _FINGER = 1, 2
 def default_config() -> dict:
     """Settings of the Jaco task."""
     return {
-        "horizon": 600,  # steps of 2 ms
+        "horizon": 240,  # steps of `timestep`: 1.2 s
+        "timestep": 0.005,  # s (dm_control's: 0.002)
         "knots": 3,
         "pitch_speed": 0.2,  # rad/s: bound of the shoulder and elbow pitch knots
         "hull_vertices": 24,  # per finger mesh's convex hull; 0: as shipped (156 and 213)
@@ -123,7 +124,9 @@ def default_config() -> dict:
 
 def solve_config() -> dict:
     """Settings of its solve (the rest are `SolveConfig`'s defaults)."""
-    return {"particles": 32, "stamp": {"jacobian": "rev"}}
+    return {"particles": 16,
+            "stamp": {"jacobian": "rev", "svgd_max_iters": 15, "sgd_max_iters": 25,
+                      "min_iters": 10}}
 
 
 def compose(config: dict | None = None):
@@ -146,6 +149,7 @@ def compose(config: dict | None = None):
     arena = arenas.Standard(name="arena")
     root = arena.mjcf_model
     root.option.noslip_iterations = 0  # MJX runs no noslip; C must replay what MJX plans
+    root.option.timestep = float(c["timestep"])
     ground = root.find("geom", "ground")
     ground.contype, ground.conaffinity = _WORLD, _WORLD | _FINGER
 
@@ -187,37 +191,18 @@ def compose(config: dict | None = None):
     return root
 
 
-def _pose_at_home(root) -> None:
-    """Makes the home pose the model's qpos0, the state every rollout starts from.
-
-    `Scene` starts rollouts at qpos0, which for a hinge is its `ref`. Setting
-    `ref = q` alone would relabel the upright pose q; rotating the joint's body
-    by q about the joint's axis as well gives the same model (limits, servos and
-    kinematics unchanged: the body at qpos is at its old frame turned by qpos),
-    whose qpos0 is the home pose.
-    """
-    homes = {f"jaco_arm/{j}": q for j, q in zip(ARM_JOINTS, HOME_ARM, strict=True)}
-    homes.update({f"jaco_arm/jaco_hand/{f}": HOME_FINGERS for f in FINGERS})
-    for name, q in homes.items():
-        joint = root.find("joint", name)
-        body = joint.parent
-        if joint.pos is not None and np.any(joint.pos):
-            raise MjstampError(f"jaco: joint {name!r} is off its body's origin")
-        axis = np.asarray(joint.axis if joint.axis is not None else (0.0, 0.0, 1.0), float)
-        turn = np.zeros(4)
-        mujoco.mju_axisAngle2Quat(turn, axis / np.linalg.norm(axis), q)
-        base = np.asarray(body.quat if body.quat is not None else (1.0, 0.0, 0.0, 0.0), float)
-        quat = np.zeros(4)
-        mujoco.mju_mulQuat(quat, base, turn)
-        body.quat = quat
-        joint.ref = q
-
-
 def scene(config: dict | None = None) -> Scene:
     """The Jaco scene as a `Scene` (composed by `compose`)."""
     root = compose(config)
-    _pose_at_home(root)
+    start_at(root, home_angles())
     return Scene(root, name="jaco")
+
+
+def home_angles() -> dict[str, float]:
+    """{joint: angle}: the arm at HOME_ARM, the fingers closed (`scenes.compose.start_at`)."""
+    homes = {f"jaco_arm/{j}": q for j, q in zip(ARM_JOINTS, HOME_ARM, strict=True)}
+    homes.update({f"jaco_arm/jaco_hand/{f}": HOME_FINGERS for f in FINGERS})
+    return homes
 
 
 BRICK = "brick/brick"  # the prop's geom, namespaced by its entity
