@@ -1,4 +1,4 @@
-"""The tutorial notebooks: committed clean, and 02's user code stays within 60 lines.
+"""The tutorial notebooks: committed clean, 02's user code within 60 lines, 04's within 80.
 
 The notebooks themselves are executed by nbmake (`--nbmake` in pyproject's addopts,
 `tutorials` in testpaths); these checks read them as JSON and run in milliseconds.
@@ -12,7 +12,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 TUTORIALS = ROOT / "tutorials"
-NOTEBOOKS = ["01_quickstart", "02_new_task", "03_skills_and_pushing"]
+NOTEBOOKS = ["01_quickstart", "02_new_task", "03_skills_and_pushing", "04_robot_arm"]
 USER_CODE_TAG = "user-code"
 MAX_USER_LINES = 60  # issue 6: "a new task ... in at most 60 lines of user code"
 
@@ -52,6 +52,16 @@ def test_new_task_user_code_fits_in_60_lines():
     assert len(lines) <= MAX_USER_LINES, f"{len(lines)} lines of user code"
     code = "\n".join(lines)
     for declaration in ("Scene(", "Task(", ".box(", ".contact(", ".cost(", ".success(", "solve("):
+        assert declaration in code, f"the tagged cells should contain {declaration}"
+
+
+def test_robot_arm_user_code_fits_in_80_lines():
+    """Issue 30: the Jaco scene composed and its task declared in under 80 lines."""
+    lines = user_code_lines(_cells("04_robot_arm"))
+    assert lines and len(lines) < 80, f"{len(lines)} lines of user code"
+    code = "\n".join(lines)
+    for declaration in ("kinova.JacoArm(", "arena.attach(", "Scene(", "Task(", ".box(",
+                        ".contact(", ".cost(", ".success(", "solve("):
         assert declaration in code, f"the tagged cells should contain {declaration}"
 
 

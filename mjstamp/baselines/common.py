@@ -125,7 +125,7 @@ class Tracker:
             plan = str(decoded.plan[i])
             if plan in self.found:
                 continue
-            cost = float(verify.cost_c(self.problem, _rows(replay, [i]), theta[[i]])[0])
+            cost = float(verify.cost_c(self.problem, replay_rows(replay, [i]), theta[[i]])[0])
             code, actions = str(decoded.code[i]), list(decoded.actions[i])
             self.found[plan] = {
                 "task_plan": plan, "code": code, "symbolic": symbolic(code, actions),
@@ -150,7 +150,7 @@ class Tracker:
             rollouts=self.rollouts, settings=settings)
 
 
-def _rows(replay: verify.Replay, idx) -> verify.Replay:
+def replay_rows(replay: verify.Replay, idx) -> verify.Replay:
     """The replay of particles `idx` alone."""
     return verify.Replay(replay.problem, replay.qpos[idx], source=replay.source,
                             qvel=None if replay.qvel is None else replay.qvel[idx],

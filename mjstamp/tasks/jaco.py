@@ -1,17 +1,12 @@
 """The Kinova Jaco arm that ships with dm_control pushes a brick towards a post.
 
-Work in progress (issue 30): not among the built-in tasks yet, because its MJX
-rollouts cost about 20 ms per particle-step here (below), which puts a solve at
-its defaults far past the issue's 30 minutes. `from mjstamp.tasks import jaco`
-registers it (`tasks.load("jaco")`, `mjstamp solve jaco` from a script that
-imported it).
-
 The scene is composed with `dm_control.mjcf` the way dm_control's manipulation
 tasks compose theirs (`dm_control/manipulation/lift.py`): the suite's
 `arenas.Standard` (its ground plane is the table top), `kinova.JacoArm` with
 `kinova.JacoHand` attached at the wrist, a `props.primitive.Box` brick added
 as a free entity, and a fixed box post. Everything comes from the installed
 dm_control (meshes included); nothing needs the network.
+`tutorials/04_robot_arm.ipynb` builds the same scene and task in user code.
 
 θ = joint-velocity knots of the arm's three large joints (shoulder yaw, shoulder
 and elbow pitch), three knots each over the horizon, interpolated linearly and
@@ -29,7 +24,8 @@ the post's face). The task plan is the contact symbols (the hand's fist proxy
 touched the brick; the brick touched the post) and the goal region the brick
 ends in: uniform shots over θ reach 10-near, 10-post and 11-post (a plan
 that parks the brick against the post, or short of it). Measured (1,024
-uniform shots, seed 0, MuJoCo C): 17% succeed, 11% near, 6% post.
+uniform shots, seed 0, MuJoCo C): 17% succeed at 2 ms steps (11.1% near,
+3.1% and 3.1% post), 17% at 5 ms (10.8%, 2.8%, 3.3%).
 
 Choices (and why):
 - collisions as dm_control sets them, pruned for MJX: the arm's links collide
@@ -43,27 +39,36 @@ Choices (and why):
   not run; the C replay must run the physics MJX plans with;
 - the finger meshes' convex hulls capped at 24 vertices (`maxhullvert`; as
   shipped 156 and 213): MuJoCo C and MJX both collide a mesh by its hull; the
-  cap cut the MJX step's compile from 51 s to about 7 s (cache warm) and its
-  time from 35 to 20 ms per particle-step (2-core CPU under load) while the
-  three known plans still succeed in C;
-- horizon 1.2 s at dm_control's 2 ms step: at 36°/s the fingertips sweep
-  about 0.3 m/s, enough to push the brick 15-20 cm;
+  cap cut the MJX step's compile from 51 s to about 7 s and its time by
+  almost half, while the three known plans still succeed in C;
+- 5 ms steps (dm_control's: 2 ms), 240 of them (1.2 s): MJX's cost is per
+  step, and MuJoCo C finds the same task plans in the same shares at 2, 4, 5
+  and 8 ms (above); at 36°/s the fingertips sweep about 0.3 m/s, enough to
+  push the brick 15-20 cm in 1.2 s;
 - the shoulder and elbow pitch knots are bounded by ±0.2 rad/s, not their
   servos' ±0.63: faster pitching lifts the fist off the table (or presses it
   in) within the horizon, and pushes nothing;
 - the goals lie along the sweep: with the servos' speed limits the brick's
-  end point spreads ±4 cm across the sweep and 0-12 cm along it in 1.2 s.
+  end point spreads ±4 cm across the sweep and 0-12 cm along it in 1.2 s;
+- solve settings: 8 particles, at most 5 SVGD and 10 SGD iterations: one
+  value-and-gradient costs about 9-12 ms per particle-step here (MJX's own
+  solver to convergence, 3-9 Newton iterations a step, with its line search;
+  0.64 ms is the step alone without them), so each iteration costs tens of
+  seconds; the seeding screen (512 shots in C) already starts 5-6 of the 8
+  particles on successes of all three task plans (seeds 0-2), and the
+  gradient steps refine them.
 
-N.B. (measured, 2-core CPU shared with other jobs) MJX is the bottleneck on
-this model: a vmapped `mjx.step` takes about 20 ms per particle-step against
-MuJoCo C's 10 µs, and 15 ms of it is `smooth.kinematics` alone (billiards:
-0.09 ms), with finger collisions 1 ms and the solver 4 ms. Kinematics is
-3 ms with the MJCF's body frames and 15 ms once `_pose_at_home` turns them,
-and turning a single body's quat to (0.9, 0.1, 0.3, 0.2) does the same: an
-MJX/XLA-CPU cost of generic body quats, not yet understood. `mjstamp check
-jaco` at its defaults runs past 10 minutes (calibration alone: unrolled 1
-iteration parts by 0.53 m p95; implicit, up to 100 iterations, by 3.8 mm
-against a 0.95 mm tolerance).
+What a real model needed (found on this one):
+- XLA's CPU fusion emitters recompute the kinematic chain in every fused
+  consumer: `mjx.step` cost 20 ms per particle-step on this arm against
+  0.64 ms with them off, which `mjstamp.configure` now does;
+- calibration: a pushed brick sticks or slips depending on where the solver
+  starts; MJX's solver without warm start parted from the scene's physics by
+  3.3-4.2 mm p95 (tolerance 0.95 mm), and calibration's last candidate (the
+  MJCF's own line search and warm start) follows it exactly;
+- a finger mesh against the brick as a symbol needed the hull enumerated in
+  the C replay's pose pass (83 GB for 64 x 600 states): symbols and the aim
+  cost read a sphere proxy round the closed fingers instead.
 """
 
 from __future__ import annotations
@@ -124,9 +129,9 @@ def default_config() -> dict:
 
 def solve_config() -> dict:
     """Settings of its solve (the rest are `SolveConfig`'s defaults)."""
-    return {"particles": 16,
-            "stamp": {"jacobian": "rev", "svgd_max_iters": 15, "sgd_max_iters": 25,
-                      "min_iters": 10}}
+    return {"particles": 8,
+            "stamp": {"jacobian": "rev", "svgd_max_iters": 5, "sgd_max_iters": 10,
+                      "min_iters": 5}}
 
 
 def compose(config: dict | None = None):
