@@ -69,8 +69,9 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
         a deep body tree they recompute shared work (the kinematics chain) in
         every fused consumer. Measured on a 2-core CPU: the Jaco arm's vmapped
         `mjx.step` 20.2 -> 0.64 ms per particle-step, its value-and-gradient
-        20.9 -> 2.8 ms, same outputs to 1e-17; the suite's rollouts compile
-        1.1-1.7x faster and run as fast or faster (`benchmarks/perf/
+        20.9 -> 2.8 ms, same outputs to 1e-17; off against on, value-and-
+        gradient speed billiards 0.95x, pachinko 1.06x, arm_strike 1.28x,
+        compile 1.45x, 1.49x, 0.82x faster (`benchmarks/perf/
         fusion_emitters.py`). N.B. last-bit differences can move a chaotic
         rollout's plans: a seed's plans are those of one setting.
     """
