@@ -65,31 +65,11 @@ SPOT_RADII = (0.2, 0.1, 0.05, 0.025, 0.0125)
 
 
 def arm(knots: int):
-    """The suite's arm strike with `knots` torque knots per motor (d = 2 · knots).
-
-    As `suite.tasks.arm_strike` (which has 3 knots), less its display hints.
-    """
+    """The suite's arm strike with `knots` torque knots per motor (d = 2 · knots)."""
     use_suite()
-    # N.B. the suite's own helper, imported rather than copied: the family is
-    # the suite's task with one knob turned.
-    from suite.tasks import _torque_knots, scene_path
+    from suite.tasks import arm_strike
 
-    from mjstamp.scenes import Scene
-    from mjstamp.tasks import Task, costs
-
-    scene = Scene(scene_path("arm_strike"), name="arm_strike")
-    task = Task(f"arm_k{knots}", scene, horizon=round(1.5 / scene.m.opt.timestep),
-                description=f"strike the ball into a goal, {knots} torque knots per motor; "
-                "task plan = rails touched")
-    task.box("torque", low=[-1.0] * (2 * knots), high=[1.0] * (2 * knots))
-    task.controls(_torque_knots("torque", motors=2, knots=knots, horizon=task.horizon))
-    for rail in ("rail_north", "rail_east", "rail_west", "rail_south"):
-        task.contact(rail, "ball", rail)
-    goals = {"east": "goal_east", "north": "goal_north", "west": "goal_west"}
-    task.cost("aim", costs.aim("forearm", "ball"))
-    task.cost("goal", costs.reach("ball", list(goals.values())))
-    task.success(costs.reaches("ball", goals, radius=0.08))
-    return task
+    return arm_strike(knots)
 
 
 def pushing(pushes: int):

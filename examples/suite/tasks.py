@@ -233,18 +233,19 @@ def pachinko() -> Task:
     return task
 
 
-def arm_strike() -> Task:
+def arm_strike(knots: int = 3) -> Task:
     """Hinge motors: a two-link arm strikes a ball into one of two goals.
 
-    θ = three torque knots per motor (shoulder, then elbow), in N·m within the
-    motors' range, interpolated over the horizon. Task plan = the rails the
-    ball touches and the goal it reaches (east, north or west).
+    θ = `knots` torque knots per motor (shoulder, then elbow; the suite's: 3),
+    in N·m within the motors' range, interpolated over the horizon. Task plan =
+    the rails the ball touches and the goal it reaches (east, north or west).
+    `benchmarks/scaling.py`'s arm family turns `knots`.
     """
     scene = _scene("arm_strike")
     task = Task("arm_strike", scene, horizon=_steps(scene, 1.5),
                 description="strike the ball into a goal; task plan = rails touched")
-    task.box("torque", low=[-1.0] * 6, high=[1.0] * 6)
-    task.controls(_torque_knots("torque", motors=2, knots=3, horizon=task.horizon))
+    task.box("torque", low=[-1.0] * (2 * knots), high=[1.0] * (2 * knots))
+    task.controls(_torque_knots("torque", motors=2, knots=knots, horizon=task.horizon))
     for rail in ("rail_north", "rail_east", "rail_west", "rail_south"):
         task.contact(rail, "ball", rail)
     goals = {"east": "goal_east", "north": "goal_north", "west": "goal_west"}
