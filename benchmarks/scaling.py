@@ -1,7 +1,8 @@
 """Where gradients pay (issue 29): families whose dimension or rarity grows, samplers in C.
 
     python -m benchmarks.scaling [--families arm pushing rarity] [--members k2 k4 ...]
-        [--samples N] [--budget-s S] [--methods random cmaes] [--seed S] [--json FILE] [--tiny]
+        [--samples N] [--budget-s S|stamp] [--methods stamp screen+adam random cmaes]
+        [--seed S] [--json FILE] [--tiny]
 
 Three families of problems written as a user would write them with mjstamp's
 public API; in each, one knob raises the dimension d of θ or the rarity of
@@ -25,20 +26,32 @@ succeed in MuJoCo C (`modes.monte_carlo`: the same replay and decode as a
 solve's; `--samples N`, the issue's aim 10⁶), with the task plans those
 samples met; where none succeeds, `success_share` is the rule-of-three upper
 bound 3/N and `success_share_is_upper_bound` says so. Then each method of
-`METHODS` runs on the member for the same wall time (`--budget-s`) and its
-anytime record is written: distinct verified task plans, the seconds at
-which each was first verified, the first of them, and the samples drawn.
+`METHODS` runs on the member and its anytime record is written: distinct
+verified task plans, the seconds at which each was first verified, the first
+of them, the samples drawn, and per task plan the best cost (C, on the MuJoCo
+C replay) and the best robustness (the share of 32 perturbed C replays that
+succeed, `verify.robustness`, seed 0) of the plans the method returned.
 
-`METHODS` is the hook for the methods to compare: a function
-`fn(task, budget_s, seed) -> record` per name (the record's keys: see
-`record`). "random" (uniform shots in C, `modes.random_search`) and "cmaes"
-(IPOP-CMA-ES in C, `mjstamp.baselines.evolution`) are here; STAMP and
-"screen+adam" are to be added the same way. Both C methods replay and decode
-one batch untimed before their clock starts (JIT compiles are not theirs).
+`METHODS`, a function `fn(task, config, budget_s, seed) -> record` per name
+(the record's keys: see `record`):
+- "stamp": `mjstamp.solve` at the member's solve settings (`solve_config`:
+  pushing's registered ones, `SolveConfig`'s defaults for the others), as a
+  user runs it; it sets its own time. Its plans are verified when the solve
+  ends, so each is "found" at its wall time.
+- "screen+adam": the ablation, the same solve without the Stein phase
+  (`stamp.svgd_max_iters` = 0): the C screen seeds the particles (its best
+  candidates spread over task plans), Adam refines them at Γ, no repulsion.
+- "random": uniform shots over θ's box in MuJoCo C (`modes.random_search`).
+- "cmaes": IPOP-CMA-ES in MuJoCo C (`mjstamp.baselines.evolution`), defaults.
+Both solves are run once first, untimed, with 1 iteration per phase (the
+compiles, then cached); compiles left in the timed run are subtracted from
+its wall time (`compile_s`). Both C methods replay and decode one batch
+untimed before their clock starts. With `--budget-s stamp` (the default)
+every other method gets the wall time STAMP took on that member.
 
 JSON (`--json FILE`): {"benchmark", "samples", "budget_s", "seed",
 "families": {FAMILY: {MEMBER: {"dim", "success_share", "successes",
-"samples", "sampled_task_plans", "methods": {METHOD: record}}}}}.
+"samples", "sampled_task_plans", "budget_s", "methods": {METHOD: record}}}}}.
 """
 
 from __future__ import annotations
@@ -144,54 +157,156 @@ def success_share(task, samples: int, *, seed: int = 0) -> dict:
             "sampling_s": m["compute_s"]}
 
 
-def record(found_at_s, wall_s: float, samples: int, **extra) -> dict:
+def solve_config(family: str, member: str) -> dict | None:
+    """The solve settings a user runs a member at: pushing's registered ones, else the defaults."""
+    if family != "pushing":
+        return None
+    from mjstamp import tasks
+
+    return tasks.load("pushing", max_pushes=int(member.removeprefix("k")))[1]
+
+
+ROBUSTNESS_SAMPLES = 32
+"""M perturbed C replays per plan for its robustness score (as `studies/robustness.py`)."""
+
+PLANS_KEPT = 8
+"""Most plans of one task plan scored for quality (the first, or the best by cost, kept)."""
+
+
+def record(found_at_s, wall_s: float, samples: int, plans: dict | None = None,
+           **extra) -> dict:
     """A method's anytime record: what every entry of `METHODS` returns.
 
     Args:
       found_at_s: seconds at which each distinct verified task plan was first verified.
-      wall_s: seconds the method used (at most the budget).
+      wall_s: seconds the method used.
       samples: rollouts or shots it spent.
+      plans: {task plan: (m, d) verified θ the method returns for it}, scored by
+        `quality` into the record's "quality" (and dropped from it).
       **extra: the method's own keys (its settings, ...).
     """
     found = sorted(float(t) for t in found_at_s)
     return {"task_plans": len(found), "first_plan_s": found[0] if found else None,
-            "wall_s": float(wall_s), "found_at_s": found, "samples": int(samples), **extra}
+            "wall_s": float(wall_s), "found_at_s": found, "samples": int(samples),
+            "plans": plans or {}, **extra}
 
 
-def run_random(task, budget_s: float, seed: int) -> dict:
+def quality(task, plans: dict, *, seed: int = 0) -> dict:
+    """{task plan: {"cost": best C on the MuJoCo C replay, "robustness": best score, "scored"}}.
+
+    Every plan is scored the same way whatever found it: its cost C on its
+    MuJoCo C replay with the scene's own solver (`verify.cost_c`) and the share
+    of `ROBUSTNESS_SAMPLES` perturbed C replays in which it succeeds
+    (`verify.robustness`, the task's uncertainty or the defaults, `seed`).
+    """
+    from mjstamp import verify
+
+    out = {}
+    for plan, theta in sorted(plans.items()):
+        theta = np.asarray(theta, np.float64).reshape(-1, task.dim)[:PLANS_KEPT]
+        cost = verify.cost_c(task, verify.simulate_c(task, theta), theta)
+        robust = verify.robustness(task, theta, samples=ROBUSTNESS_SAMPLES, seed=seed)
+        out[plan] = {"cost": float(np.min(cost)), "robustness": float(np.max(robust.success)),
+                     "scored": len(theta)}
+    return out
+
+
+def run_random(task, config, budget_s: float, seed: int) -> dict:
     """Uniform shots over θ's box in MuJoCo C for `budget_s` (`modes.random_search`)."""
     from mjstamp import modes
 
-    r = modes.random_search(task, budget_s, seed=seed)
-    return record(r["found_at_s"].values(), r["wall_s"], r["shots"],
+    r = modes.random_search(task, budget_s, seed=seed, keep_best=PLANS_KEPT)
+    return record(r["found_at_s"].values(), r["wall_s"], r["shots"], plans=r["best"],
                   successes=r["successes"], found=r["task_plans"])
 
 
-def run_cmaes(task, budget_s: float, seed: int) -> dict:
+def run_cmaes(task, config, budget_s: float, seed: int) -> dict:
     """IPOP-CMA-ES in MuJoCo C for `budget_s`, at its defaults (`baselines.evolution`)."""
     from mjstamp import baselines
 
     r = baselines.run("cmaes", task, cap_s=budget_s, seed=seed)
     return record([f["found_at_s"] for f in r.found], r.wall_s, r.rollouts,
+                  plans={f["task_plan"]: [f["theta"]] for f in r.found},
                   generations=r.runs, settings=r.settings, found=r.task_plans)
 
 
-METHODS: dict[str, Callable[[object, float, int], dict]] = {
+def _solve_record(task, config, seed: int, **stamp) -> dict:
+    """`mjstamp.solve` at `config` (with `stamp` overrides), warmed up first; its record."""
+    from mjstamp.config import SolveConfig
+    from mjstamp.solve import solve
+
+    cfg = SolveConfig.from_dict({"stamp": stamp}, base=SolveConfig.from_dict(config or {}))
+    warm = SolveConfig.from_dict({"stamp": {"svgd_max_iters": min(1, cfg.stamp.svgd_max_iters),
+                                            "sgd_max_iters": 1, "min_iters": 0}}, base=cfg)
+    solve(task, warm, seed=seed, progress=False)
+    started = time.perf_counter()
+    result = solve(task, cfg, seed=seed, progress=False)
+    wall = time.perf_counter() - started
+    compile_s = float(result.compiles["all_seconds"])
+    net = max(wall - compile_s, 0.0)
+    ok = result.verified_mask()
+    plans: dict[str, list] = {}
+    for i in np.argsort(result.cost, kind="stable"):  # best MJX cost first
+        if ok[i]:
+            plans.setdefault(str(result.verified.plan[i]), []).append(result.theta[i])
+    screen = result.screen or {}
+    rollouts = result.stamp.diagnostics.step_seconds.size * len(result.theta)
+    return record([net] * len(plans), net, rollouts + (screen.get("candidates") or 0),
+                  plans=plans, wall_with_compiles_s=wall,
+                  compile_s=compile_s, particles=len(result.theta),
+                  returned=int(result.returned.sum()), verified=int(ok.sum()),
+                  screen_task_plans=len(screen.get("task_plans", {})),
+                  screen_candidates=screen.get("candidates"), timings=result.timings,
+                  settings=cfg.flat_dict(), found=sorted(plans))
+
+
+def run_stamp(task, config, budget_s: float, seed: int) -> dict:
+    """`mjstamp.solve` at the member's settings; it sets its own time (`budget_s` unused)."""
+    return _solve_record(task, config, seed)
+
+
+def run_screen_adam(task, config, budget_s: float, seed: int) -> dict:
+    """The ablation: the same solve without the Stein phase (C screen, then Adam at Γ)."""
+    return _solve_record(task, config, seed, svgd_max_iters=0)
+
+
+METHODS: dict[str, Callable[[object, dict | None, float, int], dict]] = {
+    "stamp": run_stamp,
+    "screen+adam": run_screen_adam,
     "random": run_random,
     "cmaes": run_cmaes,
 }
-"""{name: fn(task, budget_s, seed) -> `record`}: the methods compared, each given the same
-wall time on the same cores. N.B. the hook where "stamp" and "screen+adam" go."""
+"""{name: fn(task, solve config, budget_s, seed) -> `record`}: the methods compared."""
+
+SAMPLERS = ("random", "cmaes")
+"""The methods that run for a given wall time; the others set their own."""
 
 
-def measure(families: dict[str, list[str]], *, samples: int, budget_s: float, seed: int,
-            methods: list[str], out: dict, save: Callable[[], None] = lambda: None,
-            say: Callable[[str], None] = print) -> dict:
-    """Fills `out["families"]` member by member (saving after each); returns `out`."""
+def tiny_config(family: str, member: str) -> dict:
+    """--tiny's solve settings: the member's, with 8 particles and 2 iterations per phase."""
+    config = solve_config(family, member) or {}
+    return {**config, "particles": 8, "screen": {"candidates": 8},
+            "stamp": {**config.get("stamp", {}), "svgd_max_iters": 2, "sgd_max_iters": 2,
+                      "min_iters": 0}}
+
+
+def measure(families: dict[str, list[str]], *, samples: int, budget_s: float | str,
+            seed: int, methods: list[str], out: dict, save: Callable[[], None] = lambda: None,
+            say: Callable[[str], None] = print,
+            configs: Callable[[str, str], dict | None] = solve_config) -> dict:
+    """Fills `out["families"]` member by member (saving after each method); returns `out`.
+
+    `budget_s`: seconds for each sampler, or "stamp": the wall time STAMP took on
+    the member (then "stamp" runs first). `configs(family, member)`: the solve
+    settings of "stamp" and "screen+adam".
+    """
     out.setdefault("families", {})
+    if budget_s == "stamp":
+        methods = ["stamp", *[m for m in methods if m != "stamp"]]
     for family, members in families.items():
         for member in members:
             task = FAMILIES[family][member]()
+            config = configs(family, member)
             started = time.perf_counter()
             row = {"dim": task.dim, **success_share(task, samples, seed=seed), "methods": {}}
             bound = "<= " if row["success_share_is_upper_bound"] else ""
@@ -200,14 +315,19 @@ def measure(families: dict[str, list[str]], *, samples: int, budget_s: float, se
                 f"{len(row['sampled_task_plans'])} task plans; "
                 f"{time.perf_counter() - started:.0f} s)")
             out["families"].setdefault(family, {})[member] = row
+            budget = None if budget_s == "stamp" else float(budget_s)
             for name in methods:
-                rec = METHODS[name](task, budget_s, seed)
+                rec = METHODS[name](task, config, budget or 0.0, seed)
+                if name == "stamp" and budget is None:
+                    budget = rec["wall_s"]
+                rec["quality"] = quality(task, rec.pop("plans"), seed=seed)
                 row["methods"][name] = rec
                 first = rec["first_plan_s"]
                 say(f"{family} {member}: {name} {rec['task_plans']} task plans in "
                     f"{rec['wall_s']:.1f} s ({rec['samples']} samples; first at "
                     f"{'-' if first is None else f'{first:.2f} s'})")
                 save()
+            row["budget_s"] = budget
             save()
     return out
 
@@ -221,18 +341,25 @@ def main(argv: list[str] | None = None) -> int:
                         help="members to run, of every family chosen (default: all)")
     parser.add_argument("--samples", type=int, default=10_000,
                         help="uniform shots per member for its success share (issue: 10^6)")
-    parser.add_argument("--budget-s", type=float, default=60.0,
-                        help="wall time each method gets on each member")
+    parser.add_argument("--budget-s", default="stamp", metavar="S|stamp",
+                        help="wall time each sampler gets on each member: seconds, or 'stamp' "
+                        "(default): the time STAMP took on it")
     parser.add_argument("--methods", nargs="*", choices=sorted(METHODS), default=list(METHODS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", metavar="FILE", help="write the results here")
     parser.add_argument("--tiny", action="store_true",
-                        help="one member per family, 256 shots, 3 s budgets (a smoke run)")
+                        help="one member per family, 256 shots, 8 particles, 2 iterations "
+                        "per phase, 3 s budgets (a smoke run)")
     args = parser.parse_args(argv)
 
     import mjstamp
 
     mjstamp.configure(precision="float64")
+    if args.budget_s != "stamp":
+        try:
+            args.budget_s = float(args.budget_s)
+        except ValueError:
+            parser.error(f"--budget-s {args.budget_s!r} must be seconds or 'stamp'")
     if args.tiny:
         chosen = {f: TINY[f] for f in args.families}
         args.samples, args.budget_s = 256, 3.0
@@ -242,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(args.members or []) - {m for f in args.families for m in FAMILIES[f]})
     if unknown:
         parser.error(f"no member {unknown[0]!r} in {args.families}")
-    if args.samples < 1 or not args.budget_s > 0:
+    if args.samples < 1 or (args.budget_s != "stamp" and not args.budget_s > 0):
         parser.error("--samples must be >= 1 and --budget-s > 0")
     out = {"benchmark": "scaling", "samples": args.samples, "budget_s": args.budget_s,
            "seed": args.seed, "methods": args.methods, "families": {}}
@@ -252,7 +379,8 @@ def main(argv: list[str] | None = None) -> int:
             save_json(args.json, out, indent=1, newline=True)
 
     measure(chosen, samples=args.samples, budget_s=args.budget_s, seed=args.seed,
-            methods=args.methods, out=out, save=save, say=lambda s: print(s, flush=True))
+            methods=args.methods, out=out, save=save, say=lambda s: print(s, flush=True),
+            configs=tiny_config if args.tiny else solve_config)
     save()
     return 0
 

@@ -125,7 +125,7 @@ class Tracker:
             plan = str(decoded.plan[i])
             if plan in self.found:
                 continue
-            cost = float(verify.cost_c(self.problem, replay_rows(replay, [i]), theta[[i]])[0])
+            cost = float(verify.cost_c(self.problem, replay.rows([i]), theta[[i]])[0])
             code, actions = str(decoded.code[i]), list(decoded.actions[i])
             self.found[plan] = {
                 "task_plan": plan, "code": code, "symbolic": symbolic(code, actions),
@@ -148,13 +148,6 @@ class Tracker:
             cap_s=self.cap_s, found=list(self.found.values()), wall_s=float(wall),
             reached=self.target is not None and len(self.found) >= self.target, runs=runs,
             rollouts=self.rollouts, settings=settings)
-
-
-def replay_rows(replay: verify.Replay, idx) -> verify.Replay:
-    """The replay of particles `idx` alone."""
-    return verify.Replay(replay.problem, replay.qpos[idx], source=replay.source,
-                            qvel=None if replay.qvel is None else replay.qvel[idx],
-                            ctrl=None if replay.ctrl is None else replay.ctrl[idx])
 
 
 @dataclasses.dataclass(frozen=True)

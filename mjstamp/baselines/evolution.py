@@ -48,7 +48,7 @@ import math
 import numpy as np
 
 from mjstamp import verify
-from mjstamp.baselines.common import BaselineResult, Tracker, replay_rows
+from mjstamp.baselines.common import BaselineResult, Tracker
 from mjstamp.errors import MjstampError
 from mjstamp.tasks.problem import as_problem
 
@@ -200,7 +200,7 @@ def run_cmaes(task, *, target: int | None = None, cap_s: float = 600.0, seed: in
         replay = verify.simulate_c(problem, warm)
         verify.decode(problem, replay, warm)
         verify.cost_c(problem, replay, warm)
-    verify.cost_c(problem, replay_rows(replay, [0]), warm[:1])
+    verify.cost_c(problem, replay.rows([0]), warm[:1])
     tracker = Tracker(problem, target, cap_s)
     lam, generations, restarts = population, 0, 0
     while not tracker.done:

@@ -46,6 +46,12 @@ class Replay(Poses):
         states = {"qpos": self.qpos, "qvel": self.qvel}
         self.traj = {**{k: v for k, v in states.items() if v is not None}, **traj}
 
+    def rows(self, idx) -> Replay:
+        """The replay of plans `idx` alone (an index array or list)."""
+        return Replay(self.problem, self.qpos[idx], source=self.source,
+                      qvel=None if self.qvel is None else self.qvel[idx],
+                      ctrl=None if self.ctrl is None else self.ctrl[idx])
+
     @property
     def xpos(self) -> np.ndarray:
         """(n, T, nbody, 3) body positions."""
