@@ -1,8 +1,8 @@
 """Where gradients pay (issue 29): families whose dimension or rarity grows, samplers in C.
 
     python -m benchmarks.scaling [--families arm pushing rarity] [--members k2 k4 ...]
-        [--samples N] [--budget-s S|stamp] [--methods stamp screen+adam random cmaes]
-        [--seed S] [--json FILE] [--tiny]
+        [--samples N] [--budget-s S|stamp] [--budget-from FILE]
+        [--methods stamp portfolio screen+adam random cmaes] [--seed S] [--json FILE] [--tiny]
 
 Three families of problems written as a user would write them with mjstamp's
 public API; in each, one knob raises the dimension d of θ or the rarity of
@@ -38,6 +38,9 @@ succeed, `verify.robustness`, seed 0) of the plans the method returned.
   pushing's registered ones, `SolveConfig`'s defaults for the others), as a
   user runs it; it sets its own time. Its plans are verified when the solve
   ends, so each is "found" at its wall time.
+- "portfolio": STAMP given the member's budget as a portfolio (`run_portfolio`):
+  half of it screening in C (`screen.seconds`), half of the iterations; not
+  run by default (`--methods ... portfolio`).
 - "screen+adam": the ablation, the same solve without the Stein phase
   (`stamp.svgd_max_iters` = 0): the C screen seeds the particles (its best
   candidates spread over task plans), Adam refines them at Γ, no repulsion.
@@ -270,8 +273,26 @@ def run_screen_adam(task, config, budget_s: float, seed: int) -> dict:
     return _solve_record(task, config, seed, svgd_max_iters=0)
 
 
+def run_portfolio(task, config, budget_s: float, seed: int) -> dict:
+    """STAMP as a portfolio of `budget_s`: half of it screening in C, half of the iterations.
+
+    `screen.seconds` = budget_s / 2 (the screen runs on in C until then, and
+    the solve returns every task plan it verified); `stamp.svgd_max_iters`,
+    `sgd_max_iters` and `min_iters` halved, so the gradient phases take about
+    half of what they take at the member's settings.
+    """
+    from mjstamp.config import SolveConfig
+
+    stamp = SolveConfig.from_dict(config or {}).stamp
+    return _solve_record(task, {**(config or {}), "screen": {
+        **(config or {}).get("screen", {}), "seconds": budget_s / 2}}, seed,
+        svgd_max_iters=stamp.svgd_max_iters // 2, sgd_max_iters=stamp.sgd_max_iters // 2,
+        min_iters=stamp.min_iters // 2)
+
+
 METHODS: dict[str, Callable[[object, dict | None, float, int], dict]] = {
     "stamp": run_stamp,
+    "portfolio": run_portfolio,
     "screen+adam": run_screen_adam,
     "random": run_random,
     "cmaes": run_cmaes,
@@ -279,7 +300,7 @@ METHODS: dict[str, Callable[[object, dict | None, float, int], dict]] = {
 """{name: fn(task, solve config, budget_s, seed) -> `record`}: the methods compared."""
 
 SAMPLERS = ("random", "cmaes")
-"""The methods that run for a given wall time; the others set their own."""
+"""The methods that run for a given wall time; the solves set their own ("portfolio" from it)."""
 
 
 def tiny_config(family: str, member: str) -> dict:
@@ -296,9 +317,9 @@ def measure(families: dict[str, list[str]], *, samples: int, budget_s: float | s
             configs: Callable[[str, str], dict | None] = solve_config) -> dict:
     """Fills `out["families"]` member by member (saving after each method); returns `out`.
 
-    `budget_s`: seconds for each sampler, or "stamp": the wall time STAMP took on
-    the member (then "stamp" runs first). `configs(family, member)`: the solve
-    settings of "stamp" and "screen+adam".
+    `budget_s`: seconds for each sampler; "stamp": the wall time STAMP took on
+    the member (then "stamp" runs first); or {family: {member: seconds}}.
+    `configs(family, member)`: the solve settings of the solves.
     """
     out.setdefault("families", {})
     if budget_s == "stamp":
@@ -315,7 +336,8 @@ def measure(families: dict[str, list[str]], *, samples: int, budget_s: float | s
                 f"{len(row['sampled_task_plans'])} task plans; "
                 f"{time.perf_counter() - started:.0f} s)")
             out["families"].setdefault(family, {})[member] = row
-            budget = None if budget_s == "stamp" else float(budget_s)
+            budget = (None if budget_s == "stamp" else budget_s[family][member]
+                      if isinstance(budget_s, dict) else float(budget_s))
             for name in methods:
                 rec = METHODS[name](task, config, budget or 0.0, seed)
                 if name == "stamp" and budget is None:
@@ -344,7 +366,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--budget-s", default="stamp", metavar="S|stamp",
                         help="wall time each sampler gets on each member: seconds, or 'stamp' "
                         "(default): the time STAMP took on it")
-    parser.add_argument("--methods", nargs="*", choices=sorted(METHODS), default=list(METHODS))
+    parser.add_argument("--budget-from", metavar="FILE",
+                        help="each member's budget from an earlier run's JSON (its STAMP time)")
+    parser.add_argument("--methods", nargs="*", choices=sorted(METHODS),
+                        default=[m for m in METHODS if m != "portfolio"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", metavar="FILE", help="write the results here")
     parser.add_argument("--tiny", action="store_true",
@@ -360,6 +385,12 @@ def main(argv: list[str] | None = None) -> int:
             args.budget_s = float(args.budget_s)
         except ValueError:
             parser.error(f"--budget-s {args.budget_s!r} must be seconds or 'stamp'")
+    if args.budget_from:
+        import json
+
+        earlier = json.loads(Path(args.budget_from).read_text())["families"]
+        args.budget_s = {f: {m: row["budget_s"] for m, row in rows.items()}
+                         for f, rows in earlier.items()}
     if args.tiny:
         chosen = {f: TINY[f] for f in args.families}
         args.samples, args.budget_s = 256, 3.0
@@ -369,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(args.members or []) - {m for f in args.families for m in FAMILIES[f]})
     if unknown:
         parser.error(f"no member {unknown[0]!r} in {args.families}")
-    if args.samples < 1 or (args.budget_s != "stamp" and not args.budget_s > 0):
+    if args.samples < 1 or (isinstance(args.budget_s, float) and not args.budget_s > 0):
         parser.error("--samples must be >= 1 and --budget-s > 0")
     out = {"benchmark": "scaling", "samples": args.samples, "budget_s": args.budget_s,
            "seed": args.seed, "methods": args.methods, "families": {}}

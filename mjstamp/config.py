@@ -94,14 +94,23 @@ class ScreenConfig:
         and leaves one already that steep as declared (billiards, pushing).
         Without a screen (`candidates` = 1), "auto" is 1. Reported costs are C
         itself, whatever β.
+      seconds: 0, or screen on past `candidates · particles`, in chunks of
+        fresh draws, until this much wall time has passed (a portfolio: the
+        screen's share of the budget grows with it, and the solve returns
+        every task plan the screen verified, `verify.keep_visited`). The
+        number of candidates then depends on the machine's speed (the
+        report's `screen.candidates`), so a rerun elsewhere may differ.
     """
 
     candidates: int = 64
     rescue_near: float = 0.5
     cost_scale: float | str = "auto"
+    seconds: float = 0.0
 
     def __post_init__(self):
         _check_int("screen.candidates", self.candidates, 1)
+        _check_real("screen.seconds", self.seconds, 0, math.inf, open_low=False,
+                    what="a number of seconds >= 0")
         _check_real("screen.rescue_near", self.rescue_near, 0, 1, open_low=False,
                     what="a number in [0, 1]")
         scale = self.cost_scale
@@ -153,7 +162,8 @@ class VerifyConfig:
       repair_samples: candidates per plan and round.
       keep_visited: a particle whose final state is not a verified plan, or
         duplicates another's task plan, returns the plan it held at the end of
-        SVGD or at the start if that one was (no plan found is lost).
+        SVGD or at the start if that one was, or else a success of the screen
+        in a task plan no particle holds (no plan found is lost).
       robustness_samples: M perturbed MuJoCo C replays per verified plan under
         the task's uncertain physics (`Task.uncertain`, the defaults when it
         declared none), for its robustness score (`verify.robustness`); 0: no

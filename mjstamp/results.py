@@ -178,7 +178,8 @@ def summarize(result, coverage: dict | None = None) -> dict:
         "rescue": result.rescue,
         "loss": result.loss,
         "kept_from_earlier": {
-            name: int(((result.source == name) & ok).sum()) for name in ("svgd", "initial")
+            name: int(((result.source == name) & ok).sum())
+            for name in ("svgd", "initial", "screen")
         },
         "task_plans": [{k: r[k] for k in _ROW_KEYS if k in r} for r in result.rows],
         "robustness": _robustness_summary(result.robustness),

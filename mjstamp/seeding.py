@@ -94,7 +94,8 @@ class Seeded:
       particles: (n, d) initial particles.
       screen: the `Screen` report.
       successes: {task plan: (m, d) candidates that reached it in MuJoCo C},
-        best cost first; the stall rescue re-draws near them (`Redraw`).
+        best cost first, at most max(`POOL`, n); the stall rescue re-draws near them
+        (`Redraw`) and the solve returns the best of those no particle holds.
       replay: the particles' MuJoCo C replay, from the screen's own (None
         without a screen: nothing was replayed).
     """
@@ -105,37 +106,67 @@ class Seeded:
     replay: verify.Replay | None = None
 
 
+POOL = 256
+"""Most candidates a group keeps beyond the n particles (a task plan's pool of successes)."""
+
+
+def _draws(problem, key: jax.Array, total: int, chunk: int, seconds: float, started: float):
+    """(first index, (m, d) candidates): `total` prior draws, then chunks until `seconds`."""
+    first = np.asarray(problem.init(key, total), np.float64)
+    for start in range(0, total, chunk):
+        yield start, first[start : start + chunk]
+    more = 0
+    while time.perf_counter() - started < seconds:
+        more += 1
+        yield total + (more - 1) * chunk, np.asarray(
+            problem.init(jax.random.fold_in(key, more), chunk), np.float64)
+
+
 def screen_particles(
-    problem, key: jax.Array, n: int, *, screen: int = 64, chunk: int = 256
+    problem, key: jax.Array, n: int, *, screen: int = 64, chunk: int = 256,
+    seconds: float = 0.0,
 ) -> Seeded:
-    """`seed_particles`, also handing back its successes and the particles' C replay (`Seeded`)."""
+    """`seed_particles`, also handing back its successes and the particles' C replay (`Seeded`).
+
+    `seconds` > 0 screens on past the `screen · n` candidates, a chunk at a
+    time (fresh keys folded from `key`), until that much wall time has passed:
+    the chunks it gets depend on the machine's speed, so the count is in the
+    report (`Screen.candidates`).
+    """
     started = time.perf_counter()
     problem = as_problem(problem)
     total = n * max(1, int(screen))
-    candidates = np.asarray(problem.init(key, total), np.float64)
-    if screen <= 1:
+    if screen <= 1 and not seconds > 0:
+        candidates = np.asarray(problem.init(key, total), np.float64)
         return Seeded(candidates, Screen(total, 0, {}, 0, time.perf_counter() - started), {})
     groups: dict[str, list[tuple[float, int]]] = defaultdict(list)
     successes: dict[str, int] = defaultdict(int)
     states: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    for start in range(0, total, chunk):
-        part = candidates[start : start + chunk]
+    kept: dict[int, np.ndarray] = {}
+    costs: list[np.ndarray] = []
+    screened, cap = 0, max(POOL, n)
+    for start, part in _draws(problem, key, total, chunk, seconds, started):
+        screened = start + len(part)
         replay = verify.simulate_c(problem, part)
         decoded = problem.decode(replay, part)
         cost = verify.cost_c(problem, replay, part)
+        costs.append(cost[np.isfinite(cost)])
         for j, k in enumerate(_group_keys(decoded)):
             groups[k].append((float(cost[j]), start + j))
             states[start + j] = (replay.qpos[j], replay.qvel[j], replay.ctrl[j])
+            kept[start + j] = part[j]
             if decoded.ok[j]:
                 successes[str(decoded.plan[j])] += 1
         for members in groups.values():
             members.sort()
+            for _, i in members[cap:]:
+                kept.pop(i, None)
+            del members[cap:]
         depth = _unreachable_depth([len(members) for members in groups.values()], n)
         for members in groups.values():
             for _, i in members[depth:]:
                 states.pop(i, None)
-    costs = np.array([c for members in groups.values() for c, _ in members])
-    costs = costs[np.isfinite(costs)]
+    costs = np.concatenate(costs)
     order = sorted(groups, key=lambda k: (not k.startswith("ok:"), groups[k][0][0]))
     chosen: list[int] = []
     depth = 0
@@ -145,18 +176,18 @@ def screen_particles(
                 chosen.append(groups[k][depth][1])
         depth += 1
     report = Screen(
-        candidates=total, successes=int(sum(successes.values())),
+        candidates=screened, successes=int(sum(successes.values())),
         task_plans=dict(sorted(successes.items(), key=lambda kv: -kv[1])),
         groups=len(groups), seconds=time.perf_counter() - started,
         cost_min=float(costs.min()) if costs.size else None,
         cost_median=float(np.median(costs)) if costs.size else None,
     )
-    found = {k[len("ok:"):]: candidates[[i for _, i in groups[k]]]
+    found = {k[len("ok:"):]: np.stack([kept[i] for _, i in groups[k]])
              for k in order if k.startswith("ok:")}
     qpos, qvel, ctrl = (np.stack(a) for a in zip(*(states[i] for i in chosen), strict=True))
     # N.B. the screen's own C states of the chosen candidates: the solve replays them no more.
     replay = verify.Replay(problem, qpos, source="mujoco", qvel=qvel, ctrl=ctrl)
-    return Seeded(candidates[np.asarray(chosen)], report, found, replay)
+    return Seeded(np.stack([kept[i] for i in chosen]), report, found, replay)
 
 
 def _unreachable_depth(sizes: list[int], n: int) -> int:

@@ -99,7 +99,8 @@ class SolveResult:
       returned: (n,) plans whose MJX rollout succeeds.
       repaired: (n,) returned plans that failed in MuJoCo C and were repaired.
       source: (n,) where each particle's plan comes from: "final", or "svgd" /
-        "initial" when an earlier state was kept (`SolveConfig.verify.keep_visited`).
+        "initial" when an earlier state was kept, "screen" when a success of
+        the screen was (`SolveConfig.verify.keep_visited`).
       fidelity: the calibration (`Calibration.as_dict`) plus the divergence of
         MJX rollouts from their C replays, initial and final particles.
       screen: the seeding screen (`seeding.Screen.as_dict`) or None.
@@ -290,12 +291,14 @@ def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
     and handed to calibration, the check of MJX and the evaluation of θ0.
     """
     key = jax.random.key(seed)
-    if cfg.screen.candidates <= 1:
+    if cfg.screen.candidates <= 1 and not cfg.screen.seconds:
         theta0 = problem.init(key, cfg.particles)
         replay = verify.simulate_c(problem, np.asarray(theta0, np.float64))
         return theta0, None, {}, replay
-    say(f"screening {cfg.screen.candidates * cfg.particles} candidates in MuJoCo C")
-    seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen.candidates)
+    say(f"screening {cfg.screen.candidates * cfg.particles} candidates in MuJoCo C"
+        + (f", then more for {cfg.screen.seconds:g} s in all" if cfg.screen.seconds else ""))
+    seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen.candidates,
+                                      seconds=cfg.screen.seconds)
     # N.B. the candidates are draws in the scene's precision: the cast is exact, and
     # the screen's replay is that of θ0.
     theta0 = jnp.asarray(seeded.particles, problem.scene.dtype)
@@ -498,6 +501,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         theta, source = _keep_visited(theta, outcome, visited)
         if (source != "final").any():
             outcome = evaluate(theta)
+        theta, source, outcome = _keep_screened(theta, source, outcome, successes, evaluate)
     returned = outcome.predicted.ok & np.isfinite(outcome.cost)
     clock["verify"] = time.perf_counter()
     theta, repaired, outcome = _repair(problem, cfg, theta, returned, outcome, evaluate, seed,
@@ -731,6 +735,45 @@ def _keep_visited(theta, final: Outcome, visited):
                 counts[plan_s[i]] += 1
                 break
     return theta, source
+
+
+def _keep_screened(theta, source, outcome: Outcome, successes: dict[str, np.ndarray],
+                   evaluate: _Evaluator):
+    """Returns the screen's task plans that no particle holds, in place of spare particles.
+
+    The screen's successes succeeded in MuJoCo C with the scene's own solver:
+    they are verified plans the solve found, and no plan found is lost. For
+    each task plan the screen reached and no returned, verified particle holds
+    (best screen cost first), a spare particle takes the screen's best
+    candidate of it: first particles that are not returned and verified, then
+    those whose task plan others hold too (later ones first). A candidate MJX
+    does not predict to succeed gives its particle back. The particle count
+    stays n (nothing is compiled again).
+
+    Returns:
+      (theta, source with "screen" where a candidate was taken, their `Outcome`).
+    """
+    good = outcome.good
+    plan = np.asarray(outcome.verified.plan, dtype=object)
+    held = set(plan[good])
+    missing = [pool[0] for p, pool in successes.items() if p not in held and len(pool)]
+    counts = Counter(plan[good])
+    spare = list(np.flatnonzero(~good))
+    for i in np.flatnonzero(good)[::-1]:
+        if counts[plan[i]] > 1:
+            counts[plan[i]] -= 1
+            spare.append(i)
+    idx = np.asarray(spare[: len(missing)], dtype=int)
+    if not idx.size:
+        return theta, source, outcome
+    new, new_source = theta.copy(), source.copy()
+    new[idx], new_source[idx] = np.stack(missing[: idx.size]), "screen"
+    new_outcome = evaluate(new)
+    back = idx[~new_outcome.good[idx]]
+    if back.size:
+        new[back], new_source[back] = theta[back], source[back]
+        new_outcome = evaluate(new)
+    return new, new_source, new_outcome
 
 
 def _us_per_particle_step(d: svgd.StampDiagnostics, n: int, horizon: int) -> float | None:

@@ -69,7 +69,7 @@ def _summary(m) -> dict:
         "verified_fraction": len(verified) / len(returned),
         "verified_particle_share": len(verified) / N, "distinct_verified_task_plans": 2,
         "distinct_verified_codes": 2, "verified_codes": ["0", "1"], "fidelity": {},
-        "screen": None, "rescue": None, "kept_from_earlier": {"svgd": 3, "initial": 0},
+        "screen": None, "rescue": None, "kept_from_earlier": {"svgd": 3, "initial": 0, "screen": 0},
         "task_plans": rows, "plans": entries,
         "iteration_seconds": {"svgd_first": 1.0, "svgd_median": 0.01, "sgd_first": None,
                               "sgd_median": None},

@@ -117,3 +117,60 @@ def test_auto_cost_scale_makes_the_posterior_independent_of_the_cost_units(tiny_
         spreads[weight] = report.cost_median - report.cost_min
     assert betas[0.01] > 1 and betas[0.01] == pytest.approx(2 * betas[0.02], rel=1e-6)
     assert betas[0.01] * spreads[0.01] == pytest.approx(math.log(256), rel=1e-9)
+
+
+class _Outcome:
+    """The two fields of `solve.Outcome` that `_keep_screened` reads."""
+
+    def __init__(self, good, plans):
+        self.good = np.asarray(good, bool)
+        self.verified = type("Decoded", (), {"plan": np.asarray(plans, dtype=object)})()
+
+
+def _evaluate(theta):
+    """Rows 20, 30, 40 are screen candidates of "c", "d", "e"; MJX rejects "e"."""
+    by_first = {20.0: ("c", True), 30.0: ("d", True), 40.0: ("e", False)}
+    start = {0.0: ("a", True), 2.0: ("a", True), 4.0: ("b", True), 6.0: ("", False)}
+    rows = [by_first.get(row[0]) or start[row[0]] for row in theta]
+    return _Outcome([g for _, g in rows], [p for p, _ in rows])
+
+
+@pytest.mark.parametrize("order, placed", [
+    (("b", "c", "d", "e"), {3: "c", 1: "d"}),  # more plans than spare particles: best first
+    (("e", "c"), {1: "c"}),  # MJX rejects "e": its particle gets its own plan back
+])
+def test_solve_returns_screen_plans_no_particle_holds(order, placed):
+    from mjstamp.solve import _keep_screened
+
+    theta = np.arange(8.0).reshape(4, 2)  # particles 0, 1 hold "a", 2 holds "b", 3 fails
+    pools = {"b": [[9.0, 9.0]], "c": [[20.0, 20.0], [21.0, 21.0]], "d": [[30.0, 30.0]],
+             "e": [[40.0, 40.0]]}
+    successes = {p: np.asarray(pools[p]) for p in order}
+    source = np.full(4, "final", dtype=object)
+    new, new_source, outcome = _keep_screened(theta, source, _evaluate(theta), successes,
+                                              _evaluate)
+    for i in range(4):
+        if i in placed:
+            assert new_source[i] == "screen" and outcome.verified.plan[i] == placed[i]
+        else:
+            assert new_source[i] == "final"
+            np.testing.assert_array_equal(new[i], theta[i])
+    assert set(outcome.verified.plan[outcome.good]) >= {"a", "b", *placed.values()}
+
+
+def test_screen_seconds_screens_on_in_chunks_and_keeps_its_best(tiny_task):
+    """screen.seconds: more candidates than n · screen, the particles still its best spread."""
+    task = tiny_task(goal_pos="0.2 0.3 0", radius=0.06)
+    key = jax.random.key(3)
+    short = seeding.screen_particles(task, key, 8, screen=4, chunk=16)
+    long = seeding.screen_particles(task, key, 8, screen=4, chunk=16, seconds=1.0)
+    assert short.screen.candidates == 32
+    assert long.screen.candidates > 32 and (long.screen.candidates - 32) % 16 == 0
+    assert long.screen.seconds >= 1.0
+    # more candidates: at least the short screen's successes, and no fewer task plans
+    assert long.screen.successes >= short.screen.successes
+    assert set(long.screen.task_plans) >= set(short.screen.task_plans)
+    for plan, pool in long.successes.items():
+        assert 1 <= len(pool) <= max(seeding.POOL, 8)
+        decoded = verify.decode(task, verify.simulate_c(task, pool), pool)
+        assert decoded.ok.all() and set(decoded.plan) == {plan}
