@@ -3,6 +3,7 @@
     python -m benchmarks.scaling [--families arm pushing rarity] [--members k2 k4 ...]
         [--samples N] [--budget-s S|stamp] [--budget-from FILE]
         [--methods stamp portfolio screen+adam random cmaes] [--seed S] [--json FILE] [--tiny]
+        [--figures DIR] [--report FILE]
 
 Three families of problems written as a user would write them with mjstamp's
 public API; in each, one knob raises the dimension d of θ or the rarity of
@@ -54,7 +55,16 @@ every other method gets the wall time STAMP took on that member.
 
 JSON (`--json FILE`): {"benchmark", "samples", "budget_s", "seed",
 "families": {FAMILY: {MEMBER: {"dim", "success_share", "successes",
-"samples", "sampled_task_plans", "budget_s", "methods": {METHOD: record}}}}}.
+"samples", "sampled_task_plans", "budget_s", "methods": {METHOD: record},
+"versus": {SOLVE METHOD: `versus`}}}}, "crossover": {FAMILY: {SOLVE METHOD:
+member}}}: `versus` holds the issue's targets against the member's best
+sampler (task plans ratio, first-plan time ratio, and for the task plans both
+found the share where the solve's best cost is no higher and the median
+robustness gain); `crossover` the first member from which on the solve finds
+at least the best sampler's task plans. The run prints the README's markdown
+table (`table`); `--figures DIR` draws a figure per family (`family_figure`:
+task plans against seconds, a line per method); `--report FILE` does both
+for an earlier run's JSON without measuring.
 """
 
 from __future__ import annotations
@@ -166,7 +176,7 @@ def solve_config(family: str, member: str) -> dict | None:
         return None
     from mjstamp import tasks
 
-    return tasks.load("pushing", max_pushes=int(member.removeprefix("k")))[1]
+    return tasks.load("pushing", max_pushes=int(member.removeprefix("k")))[1].as_dict()
 
 
 ROBUSTNESS_SAMPLES = 32
@@ -354,6 +364,134 @@ def measure(families: dict[str, list[str]], *, samples: int, budget_s: float | s
     return out
 
 
+COLORS = {"stamp": "C0", "portfolio": "C4", "screen+adam": "C2", "random": "C1", "cmaes": "C3"}
+"""One colour per method in every family's figure."""
+
+
+def best_sampler(row: dict) -> str | None:
+    """The sampler of `SAMPLERS` that found most task plans on a member (first first on ties)."""
+    ran = [m for m in SAMPLERS if m in row["methods"]]
+    return max(ran, key=lambda m: row["methods"][m]["task_plans"], default=None)
+
+
+def versus(row: dict, method: str) -> dict | None:
+    """How `method` fares against the member's best sampler (the issue's targets), or None.
+
+    Returns:
+      {"sampler", "plans_ratio": method's task plans / the sampler's (None if
+      the sampler found none), "first_plan_ratio": method's first plan time /
+      the sampler's, "common": task plans both found, "cost_le_share": share of
+      those where the method's best C cost <= the sampler's, "robustness_gain":
+      median over them of method's best robustness - the sampler's}.
+    """
+    sampler = best_sampler(row)
+    if sampler is None or method not in row["methods"]:
+        return None
+    mine, theirs = row["methods"][method], row["methods"][sampler]
+    common = sorted(set(mine["quality"]) & set(theirs["quality"]))
+    a, b = mine["quality"], theirs["quality"]
+    first = (mine["first_plan_s"] / theirs["first_plan_s"]
+             if mine["first_plan_s"] is not None and theirs["first_plan_s"] else None)
+    return {
+        "sampler": sampler,
+        "plans_ratio": mine["task_plans"] / theirs["task_plans"] if theirs["task_plans"] else None,
+        "first_plan_ratio": first, "common": len(common),
+        "cost_le_share": (float(np.mean([a[p]["cost"] <= b[p]["cost"] for p in common]))
+                          if common else None),
+        "robustness_gain": (float(np.median([a[p]["robustness"] - b[p]["robustness"]
+                                             for p in common])) if common else None),
+    }
+
+
+def anytime(rec: dict) -> tuple[list[float], list[int]]:
+    """(seconds, task plans found by then) of a record: a step curve from 0 to its wall time."""
+    found = rec["found_at_s"]
+    return [0.0, *found, rec["wall_s"]], [0, *range(1, len(found) + 1), len(found)]
+
+
+def family_figure(family: str, rows: dict):
+    """One panel per member: distinct verified task plans against seconds, a line per method."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(3.0 * len(rows) + 0.6, 3.4), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(rows), squeeze=False)[0]
+    for ax, (member, row) in zip(axes, rows.items(), strict=True):
+        for name, rec in row["methods"].items():
+            t, n = anytime(rec)
+            ax.step(t, n, where="post", color=COLORS.get(name), label=name, lw=1.6)
+        share = row["success_share"]
+        bound = "≤ " if row.get("success_share_is_upper_bound") else ""
+        ax.set_title(f"{member}: d = {row['dim']}, share {bound}{share:.1g}", fontsize=9)
+        ax.set_xlabel("wall time (s)")
+        ax.set_ylim(bottom=0)
+    axes[0].set_ylabel("distinct verified task plans")
+    axes[-1].legend(fontsize=8, loc="lower right")
+    fig.suptitle(f"{family}: task plans found against wall time\n(equal budgets, same cores)",
+                 fontsize=10)
+    return fig
+
+
+def table(out: dict) -> str:
+    """The README's markdown table: per member d, share, budget, each method's plans (first s)."""
+    rows = [row for family in out["families"].values() for row in family.values()]
+    methods = [m for m in METHODS if any(m in row["methods"] for row in rows)]
+    head = ["family", "member", "d", "success share", "budget s",
+            *[f"{m}: plans (first s)" for m in methods],
+            "stamp vs best sampler: cost ≤, robustness +"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for family, rows in out["families"].items():
+        for member, row in rows.items():
+            share = row["success_share"]
+            cells = [family, member, str(row["dim"]),
+                     f"{'≤ ' if row.get('success_share_is_upper_bound') else ''}{share:.2g}",
+                     f"{row.get('budget_s') or 0:.0f}"]
+            for m in methods:
+                rec = row["methods"].get(m)
+                first = None if rec is None else rec["first_plan_s"]
+                cells.append("-" if rec is None else
+                             f"{rec['task_plans']} ({'-' if first is None else f'{first:.1f}'})")
+            v = versus(row, "stamp")
+            cells.append("-" if not v or not v["common"] else
+                         f"{v['cost_le_share']:.0%} of {v['common']}, {v['robustness_gain']:+.2f}")
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def crossover(rows: dict, method: str = "stamp") -> str | None:
+    """The first member from which on `method` finds at least the best sampler's task plans.
+
+    Members in the family's order (dimension or rarity rising); None when the
+    last member is not such a one (or the method did not run).
+    """
+    first = None
+    for member, row in rows.items():
+        v = versus(row, method)
+        if v is None:
+            return None
+        mine, theirs = row["methods"][method]["task_plans"], row["methods"][v["sampler"]]
+        if mine >= theirs["task_plans"]:
+            first = first or member
+        else:
+            first = None
+    return first
+
+
+def report(out: dict, figures: Path | None = None) -> str:
+    """Adds each member's `versus` and each family's `crossover` for the solves; figures; table."""
+    for family, rows in out["families"].items():
+        for row in rows.values():
+            row["versus"] = {m: versus(row, m) for m in row["methods"] if m not in SAMPLERS}
+        solves = {m for row in rows.values() for m in row["versus"]}
+        out.setdefault("crossover", {})[family] = {m: crossover(rows, m) for m in sorted(solves)}
+    if figures is not None:
+        figures.mkdir(parents=True, exist_ok=True)
+        for family, rows in out["families"].items():
+            family_figure(family, rows).savefig(figures / f"scaling_{family}.png", dpi=120)
+    return table(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parses the arguments, measures, prints a line per step; writes JSON with --json."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -372,10 +510,24 @@ def main(argv: list[str] | None = None) -> int:
                         default=[m for m in METHODS if m != "portfolio"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", metavar="FILE", help="write the results here")
+    parser.add_argument("--figures", metavar="DIR", type=Path,
+                        help="write a figure per family here (scaling_FAMILY.png)")
+    parser.add_argument("--report", metavar="FILE", type=Path,
+                        help="measure nothing: the table and figures of an earlier run's JSON")
     parser.add_argument("--tiny", action="store_true",
                         help="one member per family, 256 shots, 8 particles, 2 iterations "
                         "per phase, 3 s budgets (a smoke run)")
     args = parser.parse_args(argv)
+
+    if args.report:
+        import json
+
+        try:
+            out = json.loads(args.report.read_text())
+        except (OSError, ValueError) as e:
+            parser.error(f"--report {args.report}: not a JSON file of this benchmark ({e})")
+        print(report(out, args.figures))
+        return 0
 
     import mjstamp
 
@@ -412,6 +564,7 @@ def main(argv: list[str] | None = None) -> int:
     measure(chosen, samples=args.samples, budget_s=args.budget_s, seed=args.seed,
             methods=args.methods, out=out, save=save, say=lambda s: print(s, flush=True),
             configs=tiny_config if args.tiny else solve_config)
+    print(report(out, args.figures))
     save()
     return 0
 

@@ -200,13 +200,22 @@ class RobustConfig:
         --robust` sets 8.
       cvar: with `draws`, the share of the worst draws whose mean cost is
         minimised (CVaR at that level), in (0, 1]; 1: the expected cost.
+      select: 0, or after verification each verified task plan's particles
+        take the most robust of their own plans and up to `select` of the
+        screen's successes in that task plan, all scored on
+        `verify.robustness_samples` (at least 32) perturbed MuJoCo C replays of
+        draws apart from both the score's and the planning's (`SELECT_STREAM`),
+        so the score stays an honest estimate. It costs that many C replays per
+        candidate, no MJX work. `mjstamp solve --robust` sets 64.
     """
 
     draws: int = 0
     cvar: float = 1.0
+    select: int = 0
 
     def __post_init__(self):
         _check_int("robust.draws", self.draws, 0)
+        _check_int("robust.select", self.select, 0)
         _check_real("robust.cvar", self.cvar, 0, 1, open_low=True,
                     what="a number in (0, 1]: the share of the worst draws averaged "
                          "(1: the expected cost)")

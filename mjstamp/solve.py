@@ -33,7 +33,7 @@ from mjstamp import parallel, results, seeding, svgd, verify
 from mjstamp.config import SolveConfig
 from mjstamp.errors import FidelityWarning, MjstampError
 from mjstamp.progress import QUIET, Progress, ProgressLike
-from mjstamp.scenes import contacts, fidelity
+from mjstamp.scenes import contacts, fidelity, uncertainty
 from mjstamp.tasks import Problem, Task, as_problem
 from mjstamp.tracecache import cached_jit
 from mjstamp.version import __version__
@@ -502,6 +502,9 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         if (source != "final").any():
             outcome = evaluate(theta)
         theta, source, outcome = _keep_screened(theta, source, outcome, successes, evaluate)
+    if cfg.robust.select:
+        theta, source, outcome = _select_robust(problem, cfg, theta, source, outcome,
+                                                successes, evaluate, seed, say)
     returned = outcome.predicted.ok & np.isfinite(outcome.cost)
     clock["verify"] = time.perf_counter()
     theta, repaired, outcome = _repair(problem, cfg, theta, returned, outcome, evaluate, seed,
@@ -770,6 +773,58 @@ def _keep_screened(theta, source, outcome: Outcome, successes: dict[str, np.ndar
     new[idx], new_source[idx] = np.stack(missing[: idx.size]), "screen"
     new_outcome = evaluate(new)
     back = idx[~new_outcome.good[idx]]
+    if back.size:
+        new[back], new_source[back] = theta[back], source[back]
+        new_outcome = evaluate(new)
+    return new, new_source, new_outcome
+
+
+SELECT_SAMPLES = 32
+"""Fewest perturbed C replays robust selection scores a candidate on (`robust.select`)."""
+
+
+def _select_robust(problem, cfg, theta, source, outcome: Outcome, successes, evaluate, seed,
+                   say):
+    """Each verified task plan's particles take its most robust candidates (`robust.select`).
+
+    Candidates of a task plan: the returned, verified particles holding it and
+    the first `robust.select` of the screen's successes in it (best C cost
+    first), all scored by `verify.robustness` on `SELECT_STREAM` draws. The
+    plan's particles keep those of themselves among its best scored and the
+    rest take the best screen candidates (source "screen"); one MJX does not
+    predict to succeed gives its particle back. Task plans and the particle
+    count are unchanged.
+    """
+    good = outcome.good
+    plan = np.asarray(outcome.verified.plan, dtype=object)
+    groups = []
+    for p in sorted(set(plan[good])):
+        mine = np.flatnonzero(good & (plan == p))
+        pool = np.asarray(successes.get(p, ()), np.float64).reshape(-1, theta.shape[1])
+        groups.append((p, mine, pool[: cfg.robust.select]))
+    if not sum(len(pool) for _, _, pool in groups):
+        return theta, source, outcome
+    samples = max(cfg.verify.robustness_samples, SELECT_SAMPLES)
+    candidates = np.concatenate([np.concatenate([theta[mine], pool]) for _, mine, pool in groups])
+    say(f"robust selection: scoring {len(candidates)} candidates of {len(groups)} task plans "
+        f"({samples} perturbed MuJoCo C replays each)")
+    scores = verify.robustness(problem, candidates, samples=samples, seed=seed,
+                               stream=uncertainty.SELECT_STREAM).success
+    new, new_source, start = theta.copy(), source.copy(), 0
+    for _, mine, pool in groups:
+        score = scores[start : start + len(mine) + len(pool)]
+        start += len(mine) + len(pool)
+        best = np.argsort(-score, kind="stable")[: len(mine)]  # N.B. ties: particles first
+        taken = [j - len(mine) for j in best if j >= len(mine)]  # pool rows among the best
+        losers = [i for k, i in enumerate(mine) if k not in set(best)]
+        for i, j in zip(losers, taken, strict=True):
+            new[i], new_source[i] = pool[j], "screen"
+    changed = np.flatnonzero(new_source != source)
+    if not changed.size:
+        return theta, source, outcome
+    new_outcome = evaluate(new)
+    back = changed[~new_outcome.good[changed] | (new_outcome.verified.plan[changed]
+                                                  != plan[changed])]
     if back.size:
         new[back], new_source[back] = theta[back], source[back]
         new_outcome = evaluate(new)

@@ -183,3 +183,45 @@ def test_robust_cvar_without_robust_is_one_line(capsys):
         assert capsys.readouterr().err.strip().splitlines() == [
             f"mjstamp: error: --robust-cvar={float(bad)} must be in (0, 1]: the share of the "
             "worst draws (1: the expected cost)"]
+
+
+def test_robust_select_gives_each_task_plan_its_most_robust_candidates(tiny_task):
+    """robust.select: the same task plans, each at least as robust on the selection draws."""
+    from mjstamp.scenes import uncertainty
+    from mjstamp.solve import solve
+
+    config = {"particles": 8, "screen.candidates": 16, "verify.robustness_samples": 16,
+              "stamp": {"svgd_max_iters": 2, "sgd_max_iters": 2, "min_iters": 0}}
+    task = tiny_task(goal_pos="0.2 0.3 0", radius=0.06)
+    plain = solve(task, config, seed=0, progress=False)
+    chosen = solve(task, {**config, "robust.select": 16}, seed=0, progress=False)
+
+    def by_plan(result):
+        ok = result.verified_mask()
+        plans = result.verified.plan[ok]
+        score = verify.robustness(task, result.theta[ok], samples=32, seed=0,
+                                  stream=uncertainty.SELECT_STREAM).success
+        return {p: sorted(score[plans == p], reverse=True) for p in set(plans)}
+
+    before, after = by_plan(plain), by_plan(chosen)
+    assert set(after) == set(before) and before
+    for p in before:  # as many plans each, and the k-th best no worse
+        assert len(after[p]) == len(before[p])
+        assert all(a >= b for a, b in zip(after[p], before[p], strict=True)), p
+    assert (chosen.source == "screen").any()  # the screen had more robust ones
+    moved = chosen.source == "screen"
+    assert not np.array_equal(chosen.theta[moved], plain.theta[moved])
+    np.testing.assert_array_equal(chosen.theta[~moved], plain.theta[~moved])
+
+
+@pytest.mark.parametrize(("argv", "select"), [
+    (["--robust"], 64), (["--robust", "4"], 64), (["--robust", "0"], None),
+    (["--robust", "--set", "robust.select=3"], 3), ([], None),
+])
+def test_robust_flag_also_selects_unless_told_otherwise(argv, select):
+    from mjstamp.cli import build_parser
+    from mjstamp.cli.solve import ROBUST_SELECT, _overrides
+
+    assert ROBUST_SELECT == 64
+    overrides = _overrides(build_parser().parse_args(["solve", "billiards", *argv]))
+    assert overrides.get("robust.select") == select

@@ -145,3 +145,34 @@ def test_scaling_runs_tiny(tmp_path):
                 assert rec["found_at_s"] == sorted(rec["found_at_s"])
                 assert all(t <= rec["wall_s"] for t in rec["found_at_s"])
                 assert rec["first_plan_s"] == (rec["found_at_s"] or [None])[0]
+
+
+def _rec(found_at, wall, quality):
+    return {"task_plans": len(found_at), "first_plan_s": found_at[0] if found_at else None,
+            "wall_s": wall, "found_at_s": found_at, "found": sorted(quality),
+            "quality": quality}
+
+
+def test_report_compares_each_solve_with_the_best_sampler(tmp_path):
+    q = lambda cost, rob: {"cost": cost, "robustness": rob}  # noqa: E731
+    out = {"families": {"fam": {
+        "k1": {"dim": 2, "success_share": 0.1, "budget_s": 10.0, "methods": {
+            "stamp": _rec([10.0], 10.0, {"a": q(1.0, 0.5)}),
+            "random": _rec([0.5, 2.0], 10.0, {"a": q(2.0, 0.3), "b": q(1.0, 0.1)}),
+            "cmaes": _rec([1.0], 10.0, {"a": q(0.5, 0.2)})}},
+        "k2": {"dim": 8, "success_share": 3e-4, "success_share_is_upper_bound": True,
+               "budget_s": 20.0, "methods": {
+            "stamp": _rec([20.0, 20.0], 20.0, {"a": q(1.0, 0.5), "c": q(1.0, 0.5)}),
+            "random": _rec([], 20.0, {}), "cmaes": _rec([4.0], 20.0, {"c": q(3.0, 0.1)})}},
+    }}}
+    text = scaling.report(out, tmp_path)
+    k1, k2 = (out["families"]["fam"][m]["versus"]["stamp"] for m in ("k1", "k2"))
+    assert k1 == {"sampler": "random", "plans_ratio": 0.5, "first_plan_ratio": 20.0,
+                  "common": 1, "cost_le_share": 1.0, "robustness_gain": pytest.approx(0.2)}
+    assert k2["sampler"] == "cmaes" and k2["plans_ratio"] == 2.0 and k2["common"] == 1
+    assert k2["first_plan_ratio"] == 5.0 and k2["robustness_gain"] == pytest.approx(0.4)
+    assert out["crossover"] == {"fam": {"stamp": "k2"}}  # behind on k1, ahead from k2 on
+    lines = text.splitlines()
+    assert len(lines) == 4 and lines[2].startswith("| fam | k1 | 2 | 0.1 | 10 | 1 (10.0) |")
+    assert "| ≤ 0.0003 |" in lines[3] and "| 0 (-) |" in lines[3]
+    assert (tmp_path / "scaling_fam.png").stat().st_size > 10_000

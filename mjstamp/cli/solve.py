@@ -15,6 +15,9 @@ from mjstamp.cli.arguments import (
 )
 from mjstamp.errors import MjstampError
 
+ROBUST_SELECT = 64
+"""`--robust` sets `robust.select`: screen successes per task plan scored for robustness."""
+
 
 def add_parser(subparsers):
     """Adds `solve` to `subparsers`; returns its parser."""
@@ -51,7 +54,9 @@ def add_parser(subparsers):
     solve.add_argument("--robust", type=parse_count(0, "--robust"), nargs="?", const=8,
                        default=None, metavar="K", help="plan for the task's uncertain physics: "
                        "roll every particle out in K draws of it (default 8; about K times the "
-                       "work) and minimise the expected cost")
+                       "work) and minimise the expected cost; then give each task plan the "
+                       f"most robust of its plans and {ROBUST_SELECT} of the screen's "
+                       "(robust.select)")
     solve.add_argument("--robust-cvar", type=float, metavar="A", default=None,
                        help="with --robust, minimise the mean cost of the worst share A of "
                        "the draws (CVaR, 0 < A <= 1) instead of the mean of all")
@@ -116,6 +121,8 @@ def _overrides(args) -> dict:
         overrides["particles"] = args.particles
     if args.robust is not None:
         overrides["robust.draws"] = args.robust
+        if args.robust and not any(k in ("robust.select", "robust") for k in overrides):
+            overrides["robust.select"] = ROBUST_SELECT
     if args.robust_cvar is not None:
         if not 0 < args.robust_cvar <= 1:  # N.B. false for NaN too
             raise MjstampError(f"--robust-cvar={args.robust_cvar} must be in (0, 1]: the "

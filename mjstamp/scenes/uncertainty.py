@@ -252,9 +252,10 @@ def _draw(rng: np.random.Generator, u: Uncertain, shape) -> np.ndarray:
     return eps if u.kind == "position" else np.maximum(1.0 + eps, 0.01)
 
 
-#: Random streams: the robustness score's draws, and robust planning's (other draws, so
-#: a robust solve is scored on models it did not optimise for).
-SCORE_STREAM, PLAN_STREAM = 0x0B05, 0x0B06
+#: Random streams: the robustness score's draws, robust planning's, and robust
+#: selection's (`robust.select`): other draws, so a robust solve is scored on models it
+#: neither optimised for nor chose its plans on.
+SCORE_STREAM, PLAN_STREAM, SELECT_STREAM = 0x0B05, 0x0B06, 0x0B07
 
 
 def sample(m: mujoco.MjModel, uncertain: Sequence[Uncertain], samples: int,
@@ -269,7 +270,7 @@ def sample(m: mujoco.MjModel, uncertain: Sequence[Uncertain], samples: int,
       uncertain: resolved declarations.
       samples: M >= 1.
       seed: seeds the draws.
-      stream: `SCORE_STREAM` or `PLAN_STREAM`.
+      stream: `SCORE_STREAM`, `PLAN_STREAM` or `SELECT_STREAM`.
 
     Returns:
       `Perturbations`.
