@@ -100,7 +100,7 @@ class SolveResult:
       repaired: (n,) returned plans that failed in MuJoCo C and were repaired.
       source: (n,) where each particle's plan comes from: "final", or "svgd" /
         "initial" when an earlier state was kept, "screen" when a success of
-        the screen was (`SolveConfig.verify.keep_visited`).
+        the screen was (`SolveConfig.verify.keep_visited`; `robust.select`).
       fidelity: the calibration (`Calibration.as_dict`) plus the divergence of
         MJX rollouts from their C replays, initial and final particles.
       screen: the seeding screen (`seeding.Screen.as_dict`) or None.
