@@ -270,14 +270,15 @@ def random_search(task, wall_s: float, *, seed: int = 0, chunk: int = 256,
         ok = np.flatnonzero(decoded.ok)
         if keep_best and ok.size:
             cost = verify.cost_c(task, replay.rows(ok), theta[ok])
+        now = time.perf_counter() - t0
+        if now > wall_s:  # N.B. before keeping: an uncounted chunk's plans are not found
+            break
+        if keep_best and ok.size:
             for j, c in zip(ok, cost, strict=True):
                 kept = best.setdefault(str(decoded.plan[j]), [])
                 kept.append((float(c), theta[j]))
                 kept.sort(key=lambda e: e[0])
                 del kept[keep_best:]
-        now = time.perf_counter() - t0
-        if now > wall_s:
-            break
         elapsed = now
         shots += len(theta)
         successes += int(decoded.ok.sum())

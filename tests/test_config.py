@@ -36,7 +36,7 @@ def test_as_dict_is_nested_json_and_round_trips():
 
     cfg = SolveConfig.from_dict({"particles": 16, "robust.draws": 4, "screen.candidates": 1})
     d = json.loads(json.dumps(cfg.as_dict()))
-    assert d["robust"] == {"draws": 4, "cvar": 1.0} and d["screen"]["candidates"] == 1
+    assert d["robust"] == {"draws": 4, "cvar": 1.0, "select": 0} and d["screen"]["candidates"] == 1
     assert "seed" not in d["stamp"]  # the solve's own seed
     assert _no_warning(lambda: SolveConfig.from_dict(d)) == cfg
 
