@@ -771,8 +771,23 @@ def _keep_screened(theta, source, outcome: Outcome, successes: dict[str, np.ndar
         return theta, source, outcome
     new, new_source = theta.copy(), source.copy()
     new[idx], new_source[idx] = np.stack(missing[: idx.size]), "screen"
+    return _take_or_give_back(theta, source, new, new_source, idx, evaluate)
+
+
+def _take_or_give_back(theta, source, new, new_source, changed, evaluate, plan=None):
+    """Evaluates `new`; rows of `changed` MJX does not predict to succeed get `theta`'s back.
+
+    With `plan`, a row MJX predicts to succeed in another task plan than
+    `plan`'s gets its particle back too.
+
+    Returns:
+      (theta, source, their `Outcome`) as kept.
+    """
     new_outcome = evaluate(new)
-    back = idx[~new_outcome.good[idx]]
+    bad = ~new_outcome.good[changed]
+    if plan is not None:
+        bad |= new_outcome.verified.plan[changed] != plan[changed]
+    back = changed[bad]
     if back.size:
         new[back], new_source[back] = theta[back], source[back]
         new_outcome = evaluate(new)
@@ -822,13 +837,7 @@ def _select_robust(problem, cfg, theta, source, outcome: Outcome, successes, eva
     changed = np.flatnonzero(new_source != source)
     if not changed.size:
         return theta, source, outcome
-    new_outcome = evaluate(new)
-    back = changed[~new_outcome.good[changed] | (new_outcome.verified.plan[changed]
-                                                  != plan[changed])]
-    if back.size:
-        new[back], new_source[back] = theta[back], source[back]
-        new_outcome = evaluate(new)
-    return new, new_source, new_outcome
+    return _take_or_give_back(theta, source, new, new_source, changed, evaluate, plan)
 
 
 def _us_per_particle_step(d: svgd.StampDiagnostics, n: int, horizon: int) -> float | None:
