@@ -87,7 +87,7 @@ SPOT = (0.6, 0.25)
 
 ARM_KNOTS = (2, 4, 8, 16)
 PUSHES = (1, 2, 3, 4, 5)
-SPOT_RADII = (0.2, 0.1, 0.05, 0.025, 0.0125)
+SPOT_RADII = (0.2, 0.1, 0.05, 0.025, 0.0125, 0.006, 0.003)
 
 
 def arm(knots: int):
@@ -125,8 +125,8 @@ def spot(radius: float):
     for wall in WALLS:
         task.contact(wall, "cue", wall, before=("cue", "target"))
     task.cost("aim", costs.aim("cue", "target"))
-    task.cost("spot", lambda r: jnp.sum((r.body_pos("target")[:, -1, :2]
-                                         - jnp.asarray(SPOT)) ** 2, axis=-1))
+    task.residuals("spot", lambda r: r.body_pos("target")[:, -1, :2] - jnp.asarray(SPOT),
+                   tolerance=radius)
 
     def ends_on_spot(replay):
         ok = np.linalg.norm(replay.body_pos("target")[:, -1, :2] - np.asarray(SPOT),

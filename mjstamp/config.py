@@ -19,6 +19,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from mjstamp.errors import MjstampError, valid_list
+from mjstamp.svgd.polish import PolishConfig
 from mjstamp.svgd.stamp import StampConfig
 
 #: Most particles a solve takes: the n x n kernel of 65536 in float64 is 32 GiB.
@@ -221,9 +222,47 @@ class RobustConfig:
                          "(1: the expected cost)")
 
 
+@dataclasses.dataclass(frozen=True)
+class LandingConfig:
+    """Gauss–Newton in MuJoCo C on the task's residual goals (`verify.land`).
+
+    Its own group because it runs on the scene's own physics, not the gradient
+    model: where a scene's outcome is rough at fine scales (contacts on a step
+    grid), the exact derivative predicts nothing at a step's scale and the
+    polish in the gradient model (`polish`) crawls; central differences in C at
+    the step's own scale do not, at a few µs a step. Idle where the task
+    declares no residual costs.
+
+    Attributes:
+      iterations: most iterations per particle after STAMP and its polish
+        (each 2k + 1 C rollouts, k the movable coordinates); 0: off.
+      early: also land the screen's chosen candidates (its successes and
+        nearest misses, spread over task plans) before STAMP starts; the
+        plans they verify are returned where no particle holds their task
+        plan (`verify.keep_visited`), and the first verified plan comes from
+        the screen and one landing rather than the end of the solve.
+      radius: initial trust radius, in box widths.
+      depth: a plan has landed within this share of each goal's tolerance.
+    """
+
+    iterations: int = 20
+    early: bool = True
+    radius: float = 0.01
+    depth: float = 0.25
+
+    def __post_init__(self):
+        _check_int("landing.iterations", self.iterations, 0)
+        _check_bool("landing.early", self.early)
+        _check_real("landing.radius", self.radius, 0, 1, open_low=True,
+                    what="a number in (0, 1] (box widths)")
+        _check_real("landing.depth", self.depth, 0, 1, open_low=True,
+                    what="a number in (0, 1] (a share of the goal's tolerance)")
+
+
 #: Each group's class and its default, in `SolveConfig`'s order.
 _GROUPS = {"stamp": (StampConfig, SOLVE_STAMP), "screen": (ScreenConfig, ScreenConfig()),
            "calibration": (CalibrationConfig, CalibrationConfig()),
+           "polish": (PolishConfig, PolishConfig()), "landing": (LandingConfig, LandingConfig()),
            "verify": (VerifyConfig, VerifyConfig()), "robust": (RobustConfig, RobustConfig())}
 
 #: The flat names of before the nesting (deprecated, kept one release) -> the nested ones.
@@ -294,6 +333,11 @@ class SolveConfig:
         None (a schedule goes to `svgd.run_stamp` itself).
       screen: where the particles start and restart (`ScreenConfig`).
       calibration: the gradient model's fidelity check (`CalibrationConfig`).
+      polish: after STAMP, Levenberg–Marquardt on the task's residual costs
+        in the gradient model (`svgd.PolishConfig`); off (`max_iters` 0) or
+        idle where the task declares no residuals.
+      landing: Gauss–Newton on the same residuals in MuJoCo C, before STAMP
+        (the screen's candidates) and after the polish (`LandingConfig`).
       verify: the returned plans in MuJoCo C (`VerifyConfig`).
       robust: planning for uncertain physics (`RobustConfig`).
     """
@@ -303,13 +347,16 @@ class SolveConfig:
     stamp: StampConfig = SOLVE_STAMP
     screen: ScreenConfig = ScreenConfig()
     calibration: CalibrationConfig = CalibrationConfig()
+    polish: PolishConfig = PolishConfig()
+    landing: LandingConfig = LandingConfig()
     verify: VerifyConfig = VerifyConfig()
     robust: RobustConfig = RobustConfig()
 
     def __init__(self, particles: int = 128, devices: int | None = None, *, stamp=None,
-                 screen=None, calibration=None, verify=None, robust=None, **flat):
+                 screen=None, calibration=None, polish=None, landing=None, verify=None,
+                 robust=None, **flat):
         given = {"stamp": stamp, "screen": screen, "calibration": calibration,
-                 "verify": verify, "robust": robust}
+                 "polish": polish, "landing": landing, "verify": verify, "robust": robust}
         changes = {name: {} for name in _GROUPS}
         for name, value in list(given.items()):
             if not _is_group_value(name, value):  # the flat `screen=1`, `robust=8`
@@ -355,7 +402,8 @@ class SolveConfig:
 
     @staticmethod
     def groups() -> list[str]:
-        """Names of the groups: "stamp", "screen", "calibration", "verify", "robust"."""
+        """Names of the groups: "stamp", "screen", "calibration", "polish", "landing", "verify",
+        "robust"."""
         return list(_GROUPS)
 
     @classmethod

@@ -179,8 +179,9 @@ def summarize(result, coverage: dict | None = None) -> dict:
         "loss": result.loss,
         "kept_from_earlier": {
             name: int(((result.source == name) & ok).sum())
-            for name in ("svgd", "initial", "screen")
+            for name in ("landed", "unpolished", "svgd", "initial", "screen")
         },
+        "polish": result.polish,
         "task_plans": [{k: r[k] for k in _ROW_KEYS if k in r} for r in result.rows],
         "robustness": _robustness_summary(result.robustness),
         "cost_scale": result.problem.cost_scale,
@@ -706,7 +707,29 @@ def _particles_line(summary: dict) -> str:
     rescue = summary.get("rescue")
     if rescue:
         line += f"; {rescue['redraws']} stalled particles re-drawn"
-    return line
+    return line + _polish_line(summary.get("polish"))
+
+
+def _polish_line(polish: dict | None) -> str:
+    """'\npolish: ...' (the gradient model's polish and the landings in C), or ''."""
+    if not polish:
+        return ""
+    parts = []
+    early = polish.get("early")
+    if early:
+        parts.append(f"the screen's {early['particles']} candidates landed in C: {early['ok']} "
+                     f"succeed ({early['task_plans']} task plans), {early['landed']} within "
+                     f"tolerance")
+    grad = polish.get("gradient")
+    if grad:
+        parts.append(f"Levenberg–Marquardt in MJX: {grad['landed']} of {grad['particles']} "
+                     f"within tolerance, median {grad['iterations_median']:g} iterations")
+    land = polish.get("landing")
+    if land:
+        parts.append(f"Gauss–Newton in C: {land['ok']} of {land['particles']} succeed, "
+                     f"{land['landed']} within tolerance, median "
+                     f"{land['iterations_median']:g} iterations")
+    return "\npolish: " + "; ".join(parts) if parts else ""
 
 
 def _robustness_line(robust: dict | None) -> str:

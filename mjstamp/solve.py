@@ -98,9 +98,10 @@ class SolveResult:
       theta: (n, d) final particles (repaired ones replaced by their repair).
       returned: (n,) plans whose MJX rollout succeeds.
       repaired: (n,) returned plans that failed in MuJoCo C and were repaired.
-      source: (n,) where each particle's plan comes from: "final", or "svgd" /
-        "initial" when an earlier state was kept, "screen" when a success of
-        the screen was (`SolveConfig.verify.keep_visited`; `robust.select`).
+      source: (n,) where each particle's plan comes from: "final", "landed"
+        (`_land`), or "unpolished" / "svgd" / "initial" when an earlier state was kept,
+        "screen" when a success of the screen was
+        (`SolveConfig.verify.keep_visited`; `robust.select`).
       fidelity: the calibration (`Calibration.as_dict`) plus the divergence of
         MJX rollouts from their C replays, initial and final particles.
       screen: the seeding screen (`seeding.Screen.as_dict`) or None.
@@ -115,6 +116,8 @@ class SolveResult:
         (`_robustness`), or None (`SolveConfig.verify.robustness_samples` = 0).
       compiles: the XLA compiles the solve did (`_Compiles.report`: count and
         seconds of those >= 0.5 s, the largest by function).
+      polish: the precision polish (`_polish_report`), or None where it did
+        not run (off, or no residual costs).
     """
 
     problem: Problem
@@ -140,6 +143,7 @@ class SolveResult:
     compiles: dict | None = None
     devices: int = 1
     robustness: dict | None = None
+    polish: dict | None = None
 
     @property
     def task(self) -> Problem:
@@ -383,6 +387,129 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress: 
     return result
 
 
+def _polish(problem: Problem, cfg: SolveConfig, theta: np.ndarray, say,
+            devices: int = 1) -> svgd.PolishResult | None:
+    """STAMP's particles polished by Levenberg–Marquardt on the task's residual costs.
+
+    None where it does not run: `polish.max_iters` 0, a task without residual
+    costs, or robust planning (the polish descends on the nominal model, and
+    would undo what the draws' expected cost chose).
+    """
+    if not cfg.polish.max_iters or not problem.residual_terms or problem.robust is not None:
+        if cfg.polish.max_iters and problem.robust is not None:
+            say("polish: off under robust planning (it descends on the nominal model)")
+        return None
+    terms = problem.residual_terms
+    say(f"polishing {len(theta)} particles by Levenberg–Marquardt on "
+        f"{', '.join(t.name for t in terms)} (at most {cfg.polish.max_iters} iterations)")
+    jit = problem_jit(problem)
+    result = svgd.run_polish(
+        parallel.shard_particles(problem.residuals, devices),
+        jnp.asarray(theta, problem.scene.dtype), problem.low, problem.high, cfg.polish,
+        tolerances=problem.residual_tolerances(),
+        jit=lambda fn, name, *example: jit(parallel.replicate_outputs(fn, devices),
+                                           f"{name} {cfg.polish} on {devices}", *example),
+        progress=say)
+    landed = "" if all(t is None for t in problem.residual_tolerances()) else (
+        f"{int(result.landed.sum())} of {len(theta)} within their goals' tolerance, ")
+    say(f"polish: {landed}median {np.median(result.iterations):g} iterations, "
+        f"{result.seconds:.1f} s")
+    return result
+
+
+def _polish_report(polished: svgd.PolishResult | None, landing: dict | None,
+                   early: dict | None, outcome: Outcome, source: np.ndarray) -> dict | None:
+    """What the polish and the landings did (None: neither ran).
+
+    {"gradient": the polish in the gradient model (`PolishResult.as_dict`, with
+    `verified`: its particles that end verified as it left them, and
+    `verified_landed`: those of them it landed within their goals'
+    tolerance), "landing": the landing in C after it (`_land`), "early": the
+    landing of the screen's candidates (`_land_early`)}.
+    """
+    if polished is None and landing is None and early is None:
+        return None
+    out: dict = {"gradient": None, "landing": landing, "early": early}
+    if polished is not None:
+        grad = polished.as_dict()
+        kept = source == "final"
+        grad["verified"] = int((outcome.good & kept).sum())
+        grad["verified_landed"] = int((outcome.good & kept & polished.landed).sum())
+        out["gradient"] = grad
+    return out
+
+
+def _landing_dict(result: verify.Landing, taken: int) -> dict:
+    return {"particles": taken, "ok": int(result.ok.sum()), "landed": int(result.landed.sum()),
+            "iterations_median": float(np.median(result.iterations)) if taken else 0.0,
+            "rollouts": result.rollouts, "seconds": round(result.seconds, 3)}
+
+
+def _land(problem: Problem, cfg: SolveConfig, theta, source, outcome: Outcome, evaluate, say):
+    """Particles landed on their residual goals in MuJoCo C (`verify.land`), where they succeed.
+
+    Every particle is taken (those landed already stop at once); one whose
+    landing found a success in C takes it (source "landed"), unless MJX does
+    not predict it to succeed (`_take_or_give_back`).
+
+    Returns:
+      (theta, source, outcome, report or None where it did not run).
+    """
+    if not cfg.landing.iterations or not problem.residual_terms:
+        return theta, source, outcome, None
+    say(f"landing {len(theta)} particles on their goals in MuJoCo C (Gauss–Newton on central "
+        f"differences, at most {cfg.landing.iterations} iterations)")
+    result = verify.land(problem, theta, iterations=cfg.landing.iterations,
+                         depth=cfg.landing.depth, radius=cfg.landing.radius,
+                         replay=outcome.replay)
+    report = _landing_dict(result, len(theta))
+    say(f"landing: {report['ok']} of {len(theta)} succeed in C, {report['landed']} within "
+        f"their goals' tolerance ({result.rollouts} C rollouts, {result.seconds:.1f} s)")
+    changed = np.flatnonzero(result.ok & np.any(result.theta != theta, axis=1))
+    if not changed.size:
+        return theta, source, outcome, report
+    new, new_source = theta.copy(), source.copy()
+    new[changed], new_source[changed] = result.theta[changed], "landed"
+    theta, source, outcome = _take_or_give_back(theta, source, new, new_source, changed,
+                                                evaluate)
+    return theta, source, outcome, report
+
+
+def _land_early(problem: Problem, cfg: SolveConfig, theta0: np.ndarray, replay0, screen,
+                successes: dict, say) -> dict | None:
+    """Lands the screen's chosen candidates in C before STAMP; adds what verifies to `successes`.
+
+    The candidates are θ0, the screen's best of each of its groups (successes
+    and nearest misses, spread over task plans); each plan a landing verifies
+    goes first in its task plan's pool of `successes` (in place), so the solve
+    returns it where no particle ends in that task plan (`_keep_screened`).
+
+    Returns:
+      The landing's report, with "task_plans" it verified, or None where it did not run.
+    """
+    if (screen is None or not cfg.landing.early or not cfg.landing.iterations
+            or not problem.residual_terms):
+        return None
+    say(f"landing the screen's {len(theta0)} chosen candidates in MuJoCo C")
+    result = verify.land(problem, theta0, iterations=cfg.landing.iterations,
+                         depth=cfg.landing.depth, radius=cfg.landing.radius, replay=replay0)
+    report = _landing_dict(result, len(theta0))
+    found = result.theta[result.ok]
+    plans = verify.decode(problem, verify.simulate_c(problem, found), found).plan if len(found) \
+        else np.zeros(0, dtype=object)
+    landed = result.landed[result.ok]
+    for plan in sorted(set(plans)):
+        mine = np.flatnonzero(plans == plan)
+        mine = mine[np.argsort(~landed[mine], kind="stable")]  # landed first
+        pool = np.asarray(successes.get(plan, np.zeros((0, theta0.shape[1]))), np.float64)
+        successes[plan] = np.concatenate([found[mine], pool.reshape(-1, theta0.shape[1])])
+    report["task_plans"] = len(set(plans))
+    say(f"landing: {report['ok']} of {len(theta0)} candidates succeed in C "
+        f"({report['task_plans']} task plans), {report['landed']} within their goals' "
+        f"tolerance ({result.seconds:.1f} s)")
+    return report
+
+
 def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, resume: bool,
                    every_s: float, resume_hint: str, say, devices: int = 1):
     """(Checkpointer or None, snapshot to resume from or None), checked before any work."""
@@ -472,6 +599,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     theta0, screen, successes, replay0 = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
     clock["screen"] = time.perf_counter()
+    early = _land_early(problem, cfg, theta0_np, replay0, screen, successes, say)
+    clock["early"] = time.perf_counter()
     calibration, report = None, {"calibrated": False}
     if cfg.calibration.enabled:
         problem, calibration = calibrate(problem, theta0_np, cfg, progress=say, reference=replay0)
@@ -487,20 +616,29 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
                            checkpointer=checkpointer, resume=snap, successes=successes)
     clock["stamp"] = time.perf_counter()
     clock["stamp_cpu"] = time.process_time() - cpu
-    say("decoding and verifying in MuJoCo C")
     theta = np.asarray(stamp.particles, np.float64)
+    polished = _polish(problem, cfg, theta, say, devices)
+    clock["polish"] = time.perf_counter()
+    say("decoding and verifying in MuJoCo C")
+    visited = {}
+    if polished is not None:
+        visited["unpolished"] = (theta, evaluate(theta))
+        theta = polished.particles
     outcome = evaluate(theta)
     source = np.full(len(theta), "final", dtype=object)
+    theta, source, outcome, landing = _land(problem, cfg, theta, source, outcome, evaluate, say)
+    clock["landing"] = time.perf_counter()
     svgd_theta = np.asarray(stamp.svgd_particles, np.float64)
     # N.B. θ0's C replay is the one made before STAMP: replayed once per solve.
-    visited = {"svgd": (svgd_theta, evaluate(svgd_theta)),
-               "initial": (theta0_np, evaluate(theta0_np, replay0))}
+    visited.update({"svgd": (svgd_theta, evaluate(svgd_theta)),
+                    "initial": (theta0_np, evaluate(theta0_np, replay0))})
     loss = loss_report({"initial": visited["initial"][1].cost,
                          "svgd": visited["svgd"][1].cost, "final": outcome.cost})
     if cfg.verify.keep_visited:
-        theta, source = _keep_visited(theta, outcome, visited)
-        if (source != "final").any():
+        theta, kept = _keep_visited(theta, outcome, visited)
+        if (kept != "final").any():
             outcome = evaluate(theta)
+        source = np.where(kept == "final", source, kept)
         theta, source, outcome = _keep_screened(theta, source, outcome, successes, evaluate)
     if cfg.robust.select:
         theta, source, outcome = _select_robust(problem, cfg, theta, source, outcome,
@@ -529,6 +667,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         screen=None if screen is None else screen.as_dict(), source=source,
         rescue=_rescue_report(problem, cfg, stamp, visited["initial"][1], outcome),
         devices=devices, loss=loss, robustness=robust,
+        polish=_polish_report(polished, landing, early, outcome, source),
     )
 
 
@@ -572,7 +711,8 @@ _ROLLOUT_LABELS = ("-evaluate)", "(final)")
 
 
 def _timings(clock: dict[str, float]) -> dict[str, float]:
-    order = ["start", "screen", "calibrate", "stamp", "verify", "repair", "robustness"]
+    order = ["start", "screen", "early", "calibrate", "stamp", "polish", "landing", "verify",
+             "repair", "robustness"]
     out = {f"{b}_s": clock[b] - clock[a] for a, b in zip(order, order[1:], strict=False)}
     # Process CPU seconds over wall seconds of STAMP: 2.0 keeps two cores busy.
     out["stamp_cpu_share"] = clock["stamp_cpu"] / max(out["stamp_s"], 1e-9)

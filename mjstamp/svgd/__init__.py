@@ -51,6 +51,13 @@ from mjstamp.svgd.kernels import (
     sum_kernels,
     von_mises,
 )
+from mjstamp.svgd.polish import (
+    PolishConfig,
+    PolishResult,
+    PolishState,
+    build_polish_step,
+    run_polish,
+)
 from mjstamp.svgd.stamp import (
     PHASE_SGD,
     PHASE_SVGD,
@@ -84,6 +91,9 @@ __all__ = [
     "PHASE_SGD",
     "PHASE_SVGD",
     "LoopSnapshot",
+    "PolishConfig",
+    "PolishResult",
+    "PolishState",
     "StampConfig",
     "StampDiagnostics",
     "StampResult",
@@ -100,6 +110,7 @@ __all__ = [
     "VonMises",
     "build_dsvgd_step",
     "build_evaluate",
+    "build_polish_step",
     "build_sgd_step",
     "build_svgd_step",
     "feature_kernel",
@@ -110,6 +121,7 @@ __all__ = [
     "near_zero_share",
     "near_zero_threshold",
     "rbf",
+    "run_polish",
     "stein_direction",
     "sum_kernels",
     "von_mises",

@@ -30,37 +30,55 @@ def value_and_batched_jacobian(
     fn: Callable[[jax.Array], jax.Array],
     x: jax.Array,
     mode: JacobianMode = "auto",
-) -> tuple[jax.Array, jax.Array]:
+    *,
+    has_aux: bool = False,
+):
     """Evaluates a particle-separable f and its per-particle Jacobians.
 
     Args:
-      fn: batched function (n, d) -> (n, m), row i depending on x[i] only.
+      fn: batched function (n, d) -> (n, m), row i depending on x[i] only;
+        with `has_aux`, (n, d) -> ((n, m), aux), aux not differentiated.
       x: (n, d) particles.
       mode: 'rev' (one forward pass, m pullbacks), 'fwd' (one forward pass
         carrying d tangents) or 'auto' (whichever of m and d is smaller; reads
         m with an abstract trace of fn, which compiles nothing but traces fn a
         second time: pass 'fwd' or 'rev' when tracing fn is expensive).
+      has_aux: fn also returns a pytree computed from the same pass.
 
     Returns:
-      (out, jac): (n, m) values and (n, m, d) Jacobians, jac[i] = ∂f(x)[i] / ∂x[i].
+      (out, jac): (n, m) values and (n, m, d) Jacobians, jac[i] = ∂f(x)[i] / ∂x[i];
+      with `has_aux`, ((out, aux), jac).
     """
     check_mode(mode)
     n, d = x.shape
+    main = (lambda z: fn(z)[0]) if has_aux else fn
     if mode == "auto":
-        m = jax.eval_shape(fn, x).shape[-1]
+        m = jax.eval_shape(main, x).shape[-1]
         mode = "rev" if m <= d else "fwd"
     if mode == "rev":
-        out, pullback = jax.vjp(fn, x)
+        if has_aux:
+            out, pullback, aux = jax.vjp(fn, x, has_aux=True)
+        else:
+            (out, pullback), aux = jax.vjp(fn, x), None
         m = out.shape[-1]
         # Cotangent k selects output k of every particle at once.
         cotangents = jnp.broadcast_to(
             jnp.eye(m, dtype=out.dtype)[:, None, :], (m, n, m)
         )
         (jac_t,) = jax.vmap(pullback)(cotangents)  # (m, n, d)
-        return out, jnp.swapaxes(jac_t, 0, 1)
+        jac = jnp.swapaxes(jac_t, 0, 1)
+        return ((out, aux), jac) if has_aux else (out, jac)
     # vmap over the tangents only: the primal does not depend on them, so it is
     # computed once, unbatched, and only the tangent arithmetic is d-wide.
     tangents = jnp.broadcast_to(jnp.eye(d, dtype=x.dtype)[:, None, :], (d, n, d))
+    if has_aux:
+        # N.B. the aux's tangents are computed and dropped: no pass of its own.
+        def push(t):
+            (out, aux), (jac_t, _) = jax.jvp(fn, (x,), (t,))
+            return (out, aux), jac_t
+
+        (out, aux), jac_t = jax.vmap(push, out_axes=(None, 0))(tangents)
+        return (out, aux), jnp.moveaxis(jac_t, 0, -1)
     out, jac_t = jax.vmap(lambda t: jax.jvp(fn, (x,), (t,)), out_axes=(None, 0))(
         tangents
     )

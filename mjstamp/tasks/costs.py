@@ -4,6 +4,11 @@ Costs are functions of a `Rollout` returning (n,) values; any JAX function of
 the rollout works the same way. Success predicates are functions of a
 `verify.Replay` (numpy) returning (ok (n,) bool, label (n,) str).
 
+A cost that is a squared distance also gives its residuals r (n, m), with
+the cost Σ r² (`reach`, `box_target`): the solve's precision polish
+(`mjstamp.svgd.polish`, Gauss–Newton) descends on them. `aim` is a gap, not
+a squared distance, and gives none; `Task.residuals` declares a user's own.
+
 Each factory here returns a `Bound`: its body, site and geom names are looked
 up once, in the scene, when `Task.cost` or `Task.success` is given it (hydrax
 resolves ids in its task's constructor), so a misspelt name fails where the
@@ -34,13 +39,27 @@ class Bound:
 
     Attributes:
       make: scene -> the function, its names looked up in that scene.
+      residuals: for a cost that is a sum of squares, scene -> fn(rollout) ->
+        r (n, m) with the cost Σ r² (the polish's form of it); else None.
+      goal: what the term or predicate measures, (body, goal sites), so that
+        a reach cost finds the radius of the `reaches` predicate on the same
+        goals (`Task.build`); None where there is no such goal.
+      tolerance: the goal's radius in the units of the residuals (a
+        predicate's `radius`): the polish stops inside it; None: unknown.
     """
 
     make: Callable
+    residuals: Callable | None = None
+    goal: tuple | None = None
+    tolerance: float | None = None
 
     def bind(self, scene) -> Callable:
         """The function on `scene`, with its names looked up there (MjstampError if unknown)."""
         return self.make(scene)
+
+    def bind_residuals(self, scene) -> Callable | None:
+        """The residual function on `scene` (r (n, m), cost = Σ r²), or None if it has none."""
+        return None if self.residuals is None else self.residuals(scene)
 
     def __call__(self, x):  # noqa: D102 - the class docstring says it: bound on x's scene
         return self.make(x.scene)(x)
@@ -84,7 +103,7 @@ def aim(geom1: str, geom2: str, *, temperature: float | None = None):
 
 def reach(
     body: str, sites: Sequence[str], *, when: str = "softmin", temperature: float | None = None,
-    axes: Sequence[int] = (0, 1),
+    axes: Sequence[int] = (0, 1), tolerance: float | None = None,
 ):
     """Squared distance of a body to the nearest of several goal sites.
 
@@ -92,6 +111,11 @@ def reach(
     L_target) or softmin-aggregated over the whole trajectory
     (`when="softmin"`): passing through a goal counts, which matches a success
     predicate that asks whether the body *enters* a goal region at any time.
+
+    Its residuals (the polish's form) are r = x_t* − g* (n, len(axes)), the
+    offset from the nearest goal g* at t* = T (final) or at the step where the
+    body passes nearest a goal (softmin; t* and g* are held fixed within a
+    Gauss–Newton step, as a hard argmin of the softmin).
 
     Args:
       body: body name.
@@ -102,6 +126,9 @@ def reach(
       temperature: softmin temperature in m². Default: (L / 20)² with L the
         scene's size (`Scene.length_scale`; 0.016 m² on a 2.5 m table), so
         passes within a few tenths of the scene of the goal all pull.
+      tolerance: the goal's radius in metres, where the polish may stop;
+        None: the radius of the task's `reaches` predicate on the same body
+        and sites, if it has one (`Task.build`).
 
     References:
       STAMP App. B-D (target loss).
@@ -111,21 +138,45 @@ def reach(
 
     axes = list(axes)
 
-    def make(scene):
+    def offsets(scene):
+        """fn(rollout) -> (n, T, g, a) offsets of the body from each goal."""
         b, goal_sites = scene.body(body), [scene.site(s) for s in sites]
+
+        def fn(r):
+            x = r.body_pos(b)[..., axes]
+            goals = jnp.stack([r.site_pos(s)[..., axes] for s in goal_sites], axis=-2)
+            return x[:, :, None] - goals
+
+        return fn
+
+    def make(scene):
+        offset = offsets(scene)
         tau = (scene.length_scale / 20) ** 2 if temperature is None else temperature
 
         def cost(r):
-            x = r.body_pos(b)[..., axes]
-            goals = jnp.stack([r.site_pos(s)[..., axes] for s in goal_sites], axis=-2)
-            d2 = jnp.min(jnp.sum((x[:, :, None] - goals) ** 2, axis=-1), axis=-1)  # (n, T)
+            d2 = jnp.min(jnp.sum(offset(r) ** 2, axis=-1), axis=-1)  # (n, T)
             if when == "final":
                 return d2[:, -1]
             return relax.softmin_aggregate(d2, temperature=tau)
 
         return cost
 
-    return Bound(make)
+    def residuals(scene):
+        offset = offsets(scene)
+
+        def fn(r):
+            off = offset(r)  # (n, T, g, a)
+            if when == "final":
+                off = off[:, -1:]
+            n, steps, goals, a = off.shape
+            flat = off.reshape(n, steps * goals, a)
+            # N.B. the nearest (step, goal) is a hard choice: no gradient flows through it.
+            k = jnp.argmin(jax.lax.stop_gradient(jnp.sum(flat**2, axis=-1)), axis=1)
+            return jnp.take_along_axis(flat, k[:, None, None], axis=1)[:, 0]
+
+        return fn
+
+    return Bound(make, residuals, goal=(body, tuple(sites), tuple(axes)), tolerance=tolerance)
 
 
 def reaches(
@@ -144,16 +195,16 @@ def reaches(
     Returns:
       fn(replay) -> (ok (n,) bool, label (n,) str; "" where not reached).
     """
-    axes = list(axes)
+    axes_ = list(axes)
     labels = list(goals)
 
     def make(scene):
         b, goal_sites = scene.body(body), [scene.site(goals[k]) for k in labels]
 
         def predicate(replay):
-            x = replay.body_pos(b)[..., axes]  # (n, T, a)
+            x = replay.body_pos(b)[..., axes_]  # (n, T, a)
             inside = np.stack(
-                [np.linalg.norm(x - replay.site_pos(s)[..., axes], axis=-1) < radius
+                [np.linalg.norm(x - replay.site_pos(s)[..., axes_], axis=-1) < radius
                  for s in goal_sites], axis=-1)  # (n, T, g)
             hit_any = inside.any(axis=-1)
             ok = hit_any.any(axis=1)
@@ -164,7 +215,8 @@ def reaches(
 
         return predicate
 
-    return Bound(make)
+    return Bound(make, goal=(body, tuple(goals[k] for k in labels), tuple(axes_)),
+                 tolerance=float(radius))
 
 
 def box_target(body: str, site: str, *, margin: float = 0.0):
@@ -172,25 +224,33 @@ def box_target(body: str, site: str, *, margin: float = 0.0):
 
     L = Σ_{i ∈ {x, y}} max(0, |x_T,i − c_i| − t_i)², with c the site's centre
     and t_i its half-size less `margin` (so that a plan aims inside the region,
-    not at its edge).
+    not at its edge). Its residuals are r_i = max(0, |x_T,i − c_i| − t_i): zero
+    inside, so the polish stops there.
 
     References:
       STAMP App. C-C (L_target).
     """
 
-    def make(scene):
+    def residuals(scene):
         b, s = scene.body(body), scene.site(site)
         half_size = scene.m.site_size[s, :2] - margin
 
-        def cost(r):
+        def fn(r):
             x = r.body_pos(b)[:, -1, :2]
             c = r.site_pos(s)[:, -1, :2]
-            half = jnp.asarray(half_size, x.dtype)
-            return jnp.sum(jax.nn.relu(jnp.abs(x - c) - half) ** 2, axis=-1)
+            return jax.nn.relu(jnp.abs(x - c) - jnp.asarray(half_size, x.dtype))
+
+        return fn
+
+    def make(scene):
+        outside = residuals(scene)
+
+        def cost(r):
+            return jnp.sum(outside(r) ** 2, axis=-1)
 
         return cost
 
-    return Bound(make)
+    return Bound(make, residuals, tolerance=0.0)
 
 
 def ends_in(body: str, site: str):

@@ -74,11 +74,35 @@ class Contact:
 
 @dataclasses.dataclass(frozen=True)
 class Term:
-    """A weighted cost or log-prior term."""
+    """A weighted cost or log-prior term.
+
+    Attributes:
+      name: unique among the task's terms.
+      fn: the term's (n,) value: fn(rollout) for a cost, fn(params) for a prior.
+      weight: its weight in C (or log p).
+      residual: for a cost that is a sum of squares, fn(rollout) -> r (n, m)
+        with `fn` = Σ r² (what the polish descends on); None otherwise.
+      tolerance: with `residual`, the norm ‖r‖ within which the term's goal
+        is met (a goal's radius), or None where unknown.
+    """
 
     name: str
     fn: Callable
     weight: float
+    residual: Callable | None = None
+    tolerance: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SumOfSquares:
+    """The cost Σ r² of a residual function r(rollout) -> (n, m) (`Task.residuals`)."""
+
+    residual: Callable
+
+    def __call__(self, rollout):
+        """(n,) Σ_j r_j²."""
+        r = self.residual(rollout)
+        return (r**2).sum(axis=-1)
 
 
 def joint_width(joint_type: int, kind: str) -> int:

@@ -387,6 +387,27 @@ class Problem:
             groups["symbols"].append(list(range(start, start + len(self.contacts))))
         return groups
 
+    @property
+    def residual_terms(self) -> tuple[Term, ...]:
+        """The cost terms with residuals (`Task.residuals`, `costs.reach`...), in order."""
+        return tuple(t for t in self.costs if t.residual is not None)
+
+    def residuals(self, theta) -> list[jax.Array]:
+        """What the precision polish descends: [√β_c · r_c (n, m_c)] per residual term c.
+
+        From one rollout at Γ(θ) on the nominal model; Σ_c ‖√β_c r_c‖² is the
+        residual terms' part of C (a softmin reach counted at its nearest pass).
+        """
+        rollout = self.scene.rollout_fn(self.horizon, fields=FIELDS)
+        r = Rollout(self, rollout(*self.inputs(theta, hard=True)), self.unpack(theta))
+        return [jnp.sqrt(jnp.asarray(t.weight, theta.dtype)) * t.residual(r)
+                for t in self.residual_terms]
+
+    def residual_tolerances(self) -> list[float | None]:
+        """Per residual term, its goal's radius in the units of `residuals` (√β_c · tol)."""
+        return [None if t.tolerance is None else math.sqrt(t.weight) * t.tolerance
+                for t in self.residual_terms]
+
     def _log_posterior(self, theta, hard: bool):
         if self.robust is not None:
             return self._robust_log_posterior(theta, hard)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -37,6 +38,7 @@ from mjstamp.tasks import fingerprint as fp
 from mjstamp.tasks.declaration import (
     Contact,
     Kind,
+    SumOfSquares,
     Term,
     Variable,
     distance_fn,
@@ -113,6 +115,9 @@ class Task:
         self.uncertainties: tuple[uncertainty.Uncertain, ...] = ()
         self._distance_fns: dict[tuple[int, int], Callable] = {}
         self._built: tuple[str, Problem] | None = None
+        # What each `costs` term and the success predicate measure (`costs.Bound.goal`).
+        self._goals: dict[str, tuple | None] = {}
+        self._success_goal: tuple | None = None
 
     # ------------------------------------------------------------------
     # Declarations.
@@ -299,18 +304,57 @@ class Task:
             self._distance(*pair)
         self.contacts.append(Contact(name, g1, g2, pair, float(alpha), float(beta)))
 
-    def cost(self, name: str, fn: Callable[[Rollout], jax.Array], weight: float = 1.0):
+    def cost(self, name: str, fn: Callable[[Rollout], jax.Array], weight: float = 1.0, *,
+             tolerance: float | None = None):
         """Adds weight · fn(rollout) to the cost C (likelihood, eq. 8); fn -> (n,).
 
-        A cost of `mjstamp.tasks.costs` has its names looked up in the scene here.
+        A cost of `mjstamp.tasks.costs` has its names looked up in the scene
+        here; one that is a squared distance (`costs.reach`, `costs.box_target`)
+        brings its residuals, which the solve's precision polish descends on.
+
+        Args:
+          name: the term's name.
+          fn: the cost.
+          weight: its weight.
+          tolerance: for a cost with residuals, the goal's radius ‖r‖ (metres
+            for a reach) within which the polish may stop; None: the cost's own
+            or, for a reach, the radius of a `costs.reaches` success on the
+            same body and goals.
         """
-        self._add_term(self.costs, name, self._bind(fn, f"cost {name!r}"), weight, "cost")
+        residual = None
+        if isinstance(fn, costs.Bound):
+            residual = self._bind(fn, f"cost {name!r}", residuals=True)
+            if tolerance is None:
+                tolerance = fn.tolerance
+            self._goals[name] = fn.goal
+        self._add_term(self.costs, name, self._bind(fn, f"cost {name!r}"), weight, "cost",
+                       residual=residual, tolerance=tolerance)
+
+    def residuals(self, name: str, fn: Callable[[Rollout], jax.Array], weight: float = 1.0, *,
+                  tolerance: float | None = None):
+        """Adds weight · Σ_j r_j² to the cost C, for residuals fn(rollout) -> r (n, m).
+
+        The cost as the polish reads it: Gauss–Newton on r lands a plan on a
+        precise goal in a few steps (`mjstamp.svgd.polish`).
+
+        Args:
+          name: the term's name.
+          fn: the residuals, e.g. `lambda r: r.body_pos("ball")[:, -1, :2] - goal`.
+          weight: the term's weight.
+          tolerance: ‖r‖ within which the goal is met (its radius), where the
+            polish may stop; None: it stops when its steps stall.
+        """
+        fn = self._bind(fn, f"residuals {name!r}")
+        if not callable(fn):
+            raise MjstampError(f"task {self.name!r}: residuals {name!r} must be callable")
+        self._add_term(self.costs, name, SumOfSquares(fn), weight, "residuals", residual=fn,
+                       tolerance=tolerance)
 
     def prior(self, name: str, fn: Callable[[dict], jax.Array], weight: float = 1.0):
         """Adds weight · fn(params) to log p(θ) (eq. 7); fn({name: (n, size)}) -> (n,)."""
         self._add_term(self.priors, name, fn, weight, "prior")
 
-    def _add_term(self, terms, name, fn, weight, what):
+    def _add_term(self, terms, name, fn, weight, what, *, residual=None, tolerance=None):
         self._check_new(name, what)
         if not callable(fn):
             raise MjstampError(f"task {self.name!r}: {what} {name!r} must be callable")
@@ -318,7 +362,13 @@ class Task:
             raise MjstampError(
                 f"task {self.name!r}: {what} {name!r} weight={weight} must be finite and >= 0"
             )
-        terms.append(Term(name, fn, float(weight)))
+        if tolerance is not None and (
+                isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Real)
+                or not (math.isfinite(tolerance) and tolerance >= 0)):
+            raise MjstampError(f"task {self.name!r}: {what} {name!r} tolerance={tolerance!r} "
+                               "must be a number >= 0 (the goal's radius) or None")
+        terms.append(Term(name, fn, float(weight), residual,
+                          None if tolerance is None else float(tolerance)))
 
     def controls(self, fn: Callable[[dict], jax.Array]) -> None:
         """Sets the map params {name: (n, size)} -> controls (n, T, nu).
@@ -346,13 +396,17 @@ class Task:
         predicate of `mjstamp.tasks.costs` has its names looked up in the scene here.
         """
         self.success_fn = self._bind(fn, "success")
+        self._success_goal = (fn.goal, fn.tolerance) if isinstance(fn, costs.Bound) else None
 
-    def _bind(self, fn, what: str):
-        """The function with its scene names resolved, where it is a `costs.Bound`; else fn."""
+    def _bind(self, fn, what: str, *, residuals: bool = False):
+        """The function with its scene names resolved, where it is a `costs.Bound`; else fn.
+
+        `residuals`: the Bound's residual function instead (None if it has none).
+        """
         if not isinstance(fn, costs.Bound):
             return fn
         try:
-            return fn.bind(self.scene)
+            return fn.bind_residuals(self.scene) if residuals else fn.bind(self.scene)
         except MjstampError as e:
             raise MjstampError(f"task {self.name!r}: {what}: {e}") from None
 
@@ -460,6 +514,17 @@ class Task:
     # ------------------------------------------------------------------
     # Building.
 
+    def _resolved_costs(self) -> tuple[Term, ...]:
+        """The cost terms, a reach without a tolerance taking its `reaches` success's radius."""
+        out = []
+        goal, radius = self._success_goal or (None, None)
+        for t in self.costs:
+            if (t.residual is not None and t.tolerance is None and goal is not None
+                    and self._goals.get(t.name) == goal):
+                t = dataclasses.replace(t, tolerance=radius)
+            out.append(t)
+        return tuple(out)
+
     def fingerprint(self) -> str:
         """A hash of everything the declaration computes with.
 
@@ -472,7 +537,10 @@ class Task:
         """
         h = hashlib.sha256()
         h.update(fp.model_digest(self.scene))
-        terms = [(t.name, t.weight, fp.of(t.fn)) for t in self.costs + self.priors]
+        # N.B. a residual enters only where declared: other terms keep the keys they had.
+        terms = [(t.name, t.weight, fp.of(t.fn))
+                 + (() if t.residual is None else (fp.of(t.residual), t.tolerance))
+                 for t in self.costs + self.priors]
         h.update(json.dumps({
             "name": self.name, "horizon": self.horizon,
             "grad": dataclasses.asdict(self.scene.grad_options),
@@ -503,7 +571,7 @@ class Task:
         problem = Problem(
             name=self.name, scene=self.scene, horizon=self.horizon,
             variables=tuple(self.variables), contacts=tuple(self.contacts),
-            costs=tuple(self.costs), priors=tuple(self.priors),
+            costs=self._resolved_costs(), priors=tuple(self.priors),
             controls_fn=self.controls_fn, actions_fn=self.actions_fn,
             success_fn=self.success_fn, kernel=None, display=dict(self.display_hints),
             settings=dict(self.settings), description=self.description, fingerprint=key,

@@ -18,7 +18,7 @@ from mjstamp.errors import MjstampError, valid_list
 from mjstamp.parallel import local_device
 from mjstamp.scenes import mjx
 from mjstamp.scenes.rollout import replay as replay_c
-from mjstamp.tasks.problem import FIELDS, Decoded, Poses, as_problem
+from mjstamp.tasks.problem import FIELDS, Decoded, Poses, Rollout, as_problem
 
 
 class Replay(Poses):
@@ -76,6 +76,7 @@ class Replay(Poses):
 # the gradient model's solver options, so a calibrated problem reuses them.
 _KINEMATICS: dict[tuple[str, Any], Any] = {}
 _STATE_COSTS: dict[tuple[str, Any], Any] = {}
+_STATE_RESIDUALS: dict[tuple[str, Any], Any] = {}
 
 
 def _kinematics(problem):
@@ -108,7 +109,7 @@ def poses(problem, qpos: np.ndarray, chunk: int = 65536):
     Args:
       problem: the `Problem`.
       qpos: (n, T, nq) positions.
-      chunk: states per compiled call (one compiled shape for every chunk).
+      chunk: most states per compiled call (calls take a power of two of them).
 
     Returns:
       ({"xpos": (n, T, nbody, 3), "site_xpos": (n, T, nsite, 3)},
@@ -118,9 +119,12 @@ def poses(problem, qpos: np.ndarray, chunk: int = 65536):
     fn, pairs = _kinematics_fn(problem)
     flat = qpos.reshape(-1, nq)
     outs = []
-    for start in range(0, len(flat), chunk):
-        part = flat[start : start + chunk]
-        pad = chunk - len(part) if len(flat) > chunk else 0
+    # N.B. one compiled shape per power of two up to `chunk`: a caller whose batches vary
+    # (landing's active particles) would otherwise compile the kinematics for each size.
+    size = min(chunk, 1 << max(len(flat) - 1, 1).bit_length())
+    for start in range(0, len(flat), size):
+        part = flat[start : start + size]
+        pad = size - len(part)
         if pad:
             part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
         out = jax.device_get(fn(jnp.asarray(part, problem.scene.dtype)))
@@ -154,6 +158,17 @@ def simulate_mjx(task, theta) -> Replay:
     return Replay(problem, np.asarray(qpos), source="mjx")
 
 
+def _pose_fn(problem):
+    """qpos (nq,) -> {field: pose} of `FIELDS` but the states: what a cost reads of a C state."""
+    kinematics = _kinematics(problem)
+
+    def pose(qpos):
+        d = kinematics(qpos)
+        return {f: getattr(d, f) for f in FIELDS if f not in ("qpos", "qvel")}
+
+    return pose
+
+
 def _state_cost_fn(problem):
     """jit: states (B, T, nq), (B, T, nv) and θ (B, d) -> the task's cost C (B,).
 
@@ -165,11 +180,7 @@ def _state_cost_fn(problem):
     """
     key = (problem.fingerprint, problem.scene.dtype)
     if key not in _STATE_COSTS:
-        kinematics = _kinematics(problem)
-
-        def pose(qpos):
-            d = kinematics(qpos)
-            return {f: getattr(d, f) for f in FIELDS if f not in ("qpos", "qvel")}
+        pose = _pose_fn(problem)
 
         def cost(qpos, qvel, theta):
             traj = jax.vmap(jax.vmap(pose))(qpos)
@@ -198,6 +209,36 @@ def cost_c(task, replay: Replay, theta: np.ndarray, *, chunk: int = 32) -> np.nd
                    jnp.asarray(theta[idx], dtype))
         out[start:stop] = np.asarray(value, np.float64)[: stop - start]
     return np.where(np.isfinite(out), out, np.inf)
+
+
+def residuals_c(task, replay: Replay, theta: np.ndarray, *, chunk: int = 64) -> list:
+    """[(n, m_k)] the task's residuals (`Problem.residuals`) on a MuJoCo C replay of θ (n, d).
+
+    Rows of a state that blew up are +inf.
+    """
+    problem = as_problem(task)
+    key = (problem.fingerprint, problem.scene.dtype)
+    if key not in _STATE_RESIDUALS:
+        pose = _pose_fn(problem)
+
+        def residuals(qpos, qvel, theta):
+            traj = jax.vmap(jax.vmap(pose))(qpos)
+            traj.update(qpos=qpos, qvel=qvel)
+            r = Rollout(problem, traj, problem.unpack(theta))
+            return [jnp.sqrt(jnp.asarray(t.weight, theta.dtype)) * t.residual(r)
+                    for t in problem.residual_terms]
+
+        _STATE_RESIDUALS[key] = jax.jit(residuals)
+    fn, n, dtype = _STATE_RESIDUALS[key], len(theta), problem.scene.dtype
+    chunks = []
+    for start in range(0, n, chunk):
+        idx = np.arange(start, start + chunk).clip(max=n - 1)  # one compiled shape
+        value = fn(jnp.asarray(replay.qpos[idx], dtype), jnp.asarray(replay.qvel[idx], dtype),
+                   jnp.asarray(theta[idx], dtype))
+        chunks.append([np.asarray(v, np.float64)[: min(chunk, n - start)] for v in value])
+    parts = [np.concatenate(column) for column in zip(*chunks, strict=True)]
+    finite = np.all([np.isfinite(p).all(axis=1) for p in parts], axis=0)
+    return [np.where(finite[:, None], p, np.inf) for p in parts]
 
 
 def decode(task, replay: Replay, theta: np.ndarray) -> Decoded:

@@ -1,0 +1,178 @@
+"""The precision polish (Levenberg–Marquardt in the gradient model) and the landing in C."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjstamp import svgd, verify
+from mjstamp.config import SolveConfig
+from mjstamp.errors import MjstampError
+from mjstamp.solve import solve
+from mjstamp.tasks import Task, costs
+from mjstamp.tasks.declaration import SumOfSquares
+
+BOX = (np.array([-2.0, -2.0]), np.array([2.0, 2.0]))
+
+
+def rosenbrock(theta):
+    """Residuals whose Σ r² is Rosenbrock's function: minimum 0 at (1, 1)."""
+    x, y = theta[:, 0], theta[:, 1]
+    return [jnp.stack([10 * (y - x**2), 1 - x], axis=1)]
+
+
+@pytest.mark.parametrize("mode", ["fwd", "rev"])
+def test_polish_lands_rosenbrock_in_a_few_steps(mode):
+    theta0 = np.random.default_rng(0).uniform(-2, 2, (32, 2))
+    result = svgd.run_polish(rosenbrock, theta0, *BOX, svgd.PolishConfig(max_iters=60),
+                             tolerances=[1e-6], mode=mode)
+    assert result.landed.all()
+    np.testing.assert_allclose(result.particles, 1.0, atol=1e-5)
+    assert np.median(result.iterations) <= 10  # Adam at a fixed step would circle for hundreds
+    assert (result.objective_after <= result.objective_before).all()
+
+
+def test_polish_keeps_to_the_box():
+    """The goal (1, 1) lies outside x <= 0.5: each particle ends on that face, at (0.5, 0.25)."""
+    low, high = np.array([-2.0, -2.0]), np.array([0.5, 2.0])
+    theta0 = np.random.default_rng(1).uniform(low, high, (16, 2))
+    result = svgd.run_polish(rosenbrock, theta0, low, high, svgd.PolishConfig(max_iters=60),
+                             tolerances=[None])
+    assert (result.particles >= low).all() and (result.particles <= high).all()
+    np.testing.assert_allclose(result.particles, [[0.5, 0.25]] * 16, atol=1e-4)
+    assert not result.landed.any()  # no tolerance declared: nothing counts as landed
+
+
+def test_polish_stops_where_its_model_predicts_nothing():
+    """On residuals rough at a fine scale the exact derivative is useless: μ passes mu_max."""
+
+    def rough(theta):
+        return [theta + 0.05 * jnp.sin(2000 * theta) - 1.0]
+
+    theta0 = np.random.default_rng(2).uniform(-2, 0, (16, 2))
+    result = svgd.run_polish(rough, theta0, *BOX, svgd.PolishConfig(max_iters=200),
+                             tolerances=[1e-3])
+    assert result.steps < 200  # every particle gave up before the cap
+    assert not result.landed.all()
+
+
+def test_polish_leaves_a_nonfinite_particle_alone():
+    def fn(theta):
+        return [jnp.where(theta[:, :1] > 1.5, jnp.nan, theta - 0.5)]
+
+    theta0 = np.array([[1.8, 0.0], [0.0, 0.0]])
+    result = svgd.run_polish(fn, theta0, *BOX, tolerances=[1e-6])
+    np.testing.assert_array_equal(result.particles[0], theta0[0])
+    assert result.iterations[0] == 0 and result.landed[1]
+
+
+@pytest.mark.parametrize(("key", "value", "message"), [
+    ("polish.max_iters", -1, "polish.max_iters=-1 must be an integer >= 0"),
+    ("polish.depth", 0, r"polish.depth=0 must be a number in \(0, 1\]"),
+    ("polish.mu0", 1e9, "polish.mu0=1000000000.0 must be below polish.mu_max"),
+    ("landing.iterations", 1.5, "landing.iterations=1.5 must be an integer >= 0"),
+    ("landing.radius", 2, r"landing.radius=2 must be a number in \(0, 1\]"),
+    ("landing.early", "yes", "landing.early='yes' must be True or False"),
+])
+def test_polish_and_landing_settings_are_checked_in_one_line(key, value, message):
+    with pytest.raises(MjstampError, match=message) as e:
+        SolveConfig.from_dict({key: value})
+    assert "\n" not in str(e.value)
+
+
+def test_residual_costs_are_their_sums_of_squares(tiny_task):
+    task = tiny_task()
+    task.cost("final", costs.reach("puck", ["goal"], when="final"), weight=2.0)
+    task.residuals("mine", lambda r: r.body_pos("puck")[:, -1, :2] - 0.1, weight=3.0,
+                   tolerance=0.05)
+    problem = task.build()
+    terms = {t.name: t for t in problem.residual_terms}
+    assert list(terms) == ["goal", "final", "mine"]
+    # A reach without a tolerance takes the radius of the `reaches` success on its goals.
+    assert terms["goal"].tolerance == 0.1 and terms["final"].tolerance == 0.1
+    assert terms["mine"].tolerance == 0.05 and isinstance(terms["mine"].fn, SumOfSquares)
+    theta = jnp.asarray(np.random.default_rng(3).uniform(-2, 2, (4, 2)))
+    rollout, values = problem.evaluate(theta, hard=True)
+    parts = problem.residuals(theta)
+    np.testing.assert_allclose(jnp.sum(parts[1] ** 2, axis=1), 2.0 * values["final"],
+                               rtol=1e-12)
+    np.testing.assert_allclose(jnp.sum(parts[2] ** 2, axis=1), 3.0 * values["mine"],
+                               rtol=1e-12)
+    # The softmin reach's residual is the offset at the nearest pass: its hard minimum.
+    d2 = jnp.sum((rollout.body_pos("puck")[..., :2] - rollout.site_pos("goal")[..., :2]) ** 2,
+                 axis=-1)
+    np.testing.assert_allclose(jnp.sum(parts[0] ** 2, axis=1), 50.0 * d2.min(axis=1),
+                               rtol=1e-12)
+    assert problem.residual_tolerances() == pytest.approx(
+        [0.1 * np.sqrt(50), 0.1 * np.sqrt(2), 0.05 * np.sqrt(3)])
+
+
+def test_residual_declarations_are_checked(tiny_task):
+    task = tiny_task()
+    with pytest.raises(MjstampError, match="residuals 'r' tolerance=-1 must be a number >= 0"):
+        task.residuals("r", lambda r: r.body_pos("puck")[:, -1, :2], tolerance=-1)
+    with pytest.raises(MjstampError, match="residuals 'goal' is already declared|'goal'"):
+        task.residuals("goal", lambda r: r.body_pos("puck")[:, -1, :2])
+    assert costs.box_target("puck", "goal").residuals is not None
+    assert costs.aim("puck", "wall").residuals is None  # a gap, not a squared distance
+
+
+def test_landing_in_c_lands_a_near_miss_that_nothing_else_moves(tiny_task):
+    """The tiny puck ends 1 cm from the goal for a 2 mm radius: Gauss–Newton in C lands it."""
+    task = tiny_task(radius=0.002)
+    problem = task.build()
+    hit = np.array([[-0.75, 0.78]])  # θ found by hand: the puck passes 1.04 cm from the goal
+    residual = np.concatenate(verify.residuals_c(problem, verify.simulate_c(problem, hit), hit), 1)
+    assert np.linalg.norm(residual) / np.sqrt(50) > 0.002  # a miss to start with
+    idle = verify.land(problem, hit, iterations=0)
+    assert not idle.ok.any() and idle.rollouts == 1
+    landed = verify.land(problem, hit, iterations=20)
+    assert landed.ok.all() and landed.landed.all()
+    assert landed.objective[0] < 0.25**2 * 0.002**2 * 50 * (1 + 1e-9)
+    assert landed.iterations[0] <= 10
+
+
+def test_solve_polishes_and_lands_and_reports_it(tiny_task):
+    """A tiny solve with a 5 mm goal: the polish and the landings land what STAMP leaves near."""
+    task = tiny_task(radius=0.005)
+    base = {"particles": 8, "screen": {"candidates": 4},
+            "stamp": {"svgd_max_iters": 2, "sgd_max_iters": 2, "min_iters": 0},
+            "verify": {"robustness_samples": 0}}
+    off = solve(task, {**base, "polish": {"max_iters": 0}, "landing": {"iterations": 0}},
+                progress=False)
+    on = solve(task, base, progress=False)
+    assert off.polish is None
+    report = on.summary()["polish"]
+    assert set(report) == {"gradient", "landing", "early"}
+    assert report["gradient"]["particles"] == 8 and report["landing"]["particles"] == 8
+    assert on.verified_mask().sum() > off.verified_mask().sum()
+    assert "landing_s" in on.timings and "polish_s" in on.timings
+
+
+def test_polish_and_landing_need_residuals(tiny_task):
+    """A task without residual costs is left as STAMP leaves it: no polish, no landing."""
+    from mjstamp import solve as solve_mod
+
+    task = tiny_task()
+    bare = Task("bare", task.scene, horizon=20)
+    bare.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
+    bare.cost("aim", costs.aim("puck", "wall"))
+    problem = bare.build()
+    assert not problem.residual_terms
+    cfg, theta = SolveConfig(), np.zeros((4, 2))
+    assert solve_mod._polish(problem, cfg, theta, print) is None
+    said = []
+    out = solve_mod._land(problem, cfg, theta, None, None, None, said.append)
+    assert out == (theta, None, None, None) and not said
+
+
+def test_jacobian_with_aux_matches_without():
+    fn = jax.jit(lambda x: (jnp.stack([x[:, 0] * x[:, 1], jnp.sin(x[:, 0])], 1), x.sum(1)))
+    x = jnp.asarray(np.random.default_rng(4).normal(size=(5, 3)))
+    from mjstamp.svgd._jacobian import value_and_batched_jacobian
+
+    for mode in ("fwd", "rev"):
+        (out, aux), jac = value_and_batched_jacobian(fn, x, mode, has_aux=True)
+        out2, jac2 = value_and_batched_jacobian(lambda z: fn(z)[0], x, mode)
+        np.testing.assert_allclose(jac, jac2, rtol=1e-12)
+        np.testing.assert_allclose(aux, x.sum(1))
