@@ -707,7 +707,7 @@ class _Compiles:
 
 
 # Names (`problem_jit` labels) of the compiled functions that contain a rollout.
-_ROLLOUT_LABELS = ("-evaluate)", "(final)")
+_ROLLOUT_LABELS = ("-evaluate)", "(final)", "(polish-step)")
 
 
 def _timings(clock: dict[str, float]) -> dict[str, float]:

@@ -24,20 +24,31 @@ def rosenbrock(theta):
 @pytest.mark.parametrize("mode", ["fwd", "rev"])
 def test_polish_lands_rosenbrock_in_a_few_steps(mode):
     theta0 = np.random.default_rng(0).uniform(-2, 2, (32, 2))
-    result = svgd.run_polish(rosenbrock, theta0, *BOX, svgd.PolishConfig(max_iters=60),
-                             tolerances=[1e-6], mode=mode)
+    config = svgd.PolishConfig(max_iters=60, patience=0)
+    result = svgd.run_polish(rosenbrock, theta0, *BOX, config, tolerances=[1e-6], mode=mode)
     assert result.landed.all()
     np.testing.assert_allclose(result.particles, 1.0, atol=1e-5)
     assert np.median(result.iterations) <= 10  # Adam at a fixed step would circle for hundreds
     assert (result.objective_after <= result.objective_before).all()
 
 
+def test_polish_lets_no_straggler_hold_the_batch():
+    """With patience, the batch stops once few still descend and none lands for a while."""
+    theta0 = np.random.default_rng(0).uniform(-2, 2, (32, 2))
+    patient = svgd.run_polish(rosenbrock, theta0, *BOX, svgd.PolishConfig(max_iters=60),
+                              tolerances=[1e-6])
+    full = svgd.run_polish(rosenbrock, theta0, *BOX,
+                           svgd.PolishConfig(max_iters=60, patience=0), tolerances=[1e-6])
+    assert patient.steps < full.steps
+    assert patient.landed.sum() >= 0.9 * len(theta0)
+
+
 def test_polish_keeps_to_the_box():
     """The goal (1, 1) lies outside x <= 0.5: each particle ends on that face, at (0.5, 0.25)."""
     low, high = np.array([-2.0, -2.0]), np.array([0.5, 2.0])
     theta0 = np.random.default_rng(1).uniform(low, high, (16, 2))
-    result = svgd.run_polish(rosenbrock, theta0, low, high, svgd.PolishConfig(max_iters=60),
-                             tolerances=[None])
+    result = svgd.run_polish(rosenbrock, theta0, low, high,
+                             svgd.PolishConfig(max_iters=60, patience=0), tolerances=[None])
     assert (result.particles >= low).all() and (result.particles <= high).all()
     np.testing.assert_allclose(result.particles, [[0.5, 0.25]] * 16, atol=1e-4)
     assert not result.landed.any()  # no tolerance declared: nothing counts as landed
@@ -68,6 +79,7 @@ def test_polish_leaves_a_nonfinite_particle_alone():
 
 @pytest.mark.parametrize(("key", "value", "message"), [
     ("polish.max_iters", -1, "polish.max_iters=-1 must be an integer >= 0"),
+    ("polish.patience", True, "polish.patience=True must be an integer >= 0"),
     ("polish.depth", 0, r"polish.depth=0 must be a number in \(0, 1\]"),
     ("polish.mu0", 1e9, "polish.mu0=1000000000.0 must be below polish.mu_max"),
     ("landing.iterations", 1.5, "landing.iterations=1.5 must be an integer >= 0"),

@@ -144,12 +144,14 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
                                         "svgd_learning_rate": 0.05, "sgd_learning_rate": 0.05,
                                         "rescue_window": 3}}
     result = solve(task, config, seed=0, progress=False)
-    # Two functions roll the scene out (issue 12): the evaluation both STAMP phases share
-    # (θ is 2-D: both differentiate forward mode) and the final evaluation.
-    assert sorted(labels) == ["final", "stamp-sgd-update", "stamp-svgd-evaluate",
+    # Three functions roll the scene out (issue 12): the evaluation both STAMP phases share
+    # (θ is 2-D: both differentiate forward mode), the polish's step (its start included)
+    # and the final evaluation.
+    assert sorted(labels) == ["final", "polish-step", "stamp-sgd-update", "stamp-svgd-evaluate",
                               "stamp-svgd-update"]
     summary = result.summary()
-    assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)"}
+    assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)",
+                                                    "jit(polish-step)"}
     assert summary["particles"] == 8 and summary["task"] == "tiny"
     # β "auto" from the screen's costs, and the log posterior STAMP sampled used it.
     assert summary["cost_scale"] == seeding.auto_cost_scale(seeding.Screen(**summary["screen"]))

@@ -53,6 +53,9 @@ __all__ = ["PolishConfig", "PolishResult", "PolishState", "build_polish_step", "
 #: Armijo's constant: a trial must lower P by this share of the model's predicted reduction.
 ARMIJO = 1e-2
 
+#: With `PolishConfig.patience`, the batch stops while fewer than this share still descend.
+STRAGGLERS = 0.1
+
 
 @dataclasses.dataclass(frozen=True)
 class PolishConfig:
@@ -61,6 +64,9 @@ class PolishConfig:
     Attributes:
       max_iters: most iterations (each one evaluation of the residuals and
         their Jacobians); 0 turns the polish off.
+      patience: the batch stops once this many iterations landed no particle
+        while fewer than a tenth of the particles still descend (each step
+        costs the whole batch); 0: it runs while any descends.
       depth: a particle has landed when every residual term with a tolerance
         is within `depth` × its tolerance (0.25: inside the goal, not at its
         edge, so a plan survives small differences of the physics).
@@ -74,6 +80,7 @@ class PolishConfig:
     """
 
     max_iters: int = 20
+    patience: int = 3
     depth: float = 0.25
     stall: float = 1e-4
     mu0: float = 1e-3
@@ -83,6 +90,9 @@ class PolishConfig:
         if (isinstance(self.max_iters, bool) or not isinstance(self.max_iters, int)
                 or self.max_iters < 0):
             raise MjstampError(f"polish.max_iters={self.max_iters!r} must be an integer >= 0")
+        if (isinstance(self.patience, bool) or not isinstance(self.patience, int)
+                or self.patience < 0):
+            raise MjstampError(f"polish.patience={self.patience!r} must be an integer >= 0")
         for name, low, high in (("depth", 0.0, 1.0), ("stall", 0.0, 1.0),
                                 ("mu0", 0.0, np.inf), ("mu_max", 0.0, np.inf)):
             value = getattr(self, name)
@@ -107,6 +117,7 @@ class PolishState(NamedTuple):
       done: (n,) stopped.
       landed: (n,) within the goals' tolerances (`PolishConfig.depth`).
       iterations: (n,) iterations each particle ran.
+      fresh: (n,) not evaluated yet: the next step evaluates `theta` itself.
     """
 
     theta: jax.Array
@@ -117,6 +128,7 @@ class PolishState(NamedTuple):
     done: jax.Array
     landed: jax.Array
     iterations: jax.Array
+    fresh: jax.Array
 
 
 def _landed(residual, sizes, tolerances, depth):
@@ -153,7 +165,9 @@ def build_polish_step(
         or 'auto' (whichever is fewer).
 
     Returns:
-      init(θ) -> PolishState; step(state) -> (state, info {"accepted": (n,)}).
+      init(θ, m) -> PolishState (m: the residuals' count; nothing is evaluated);
+      step(state) -> (state, info {"accepted": (n,)}): the first step evaluates
+      θ, every later one a trial per particle.
     """
     low_np, high_np = np.asarray(low, np.float64), np.asarray(high, np.float64)
     width_np = np.where(high_np > low_np, high_np - low_np, 1.0)
@@ -175,13 +189,14 @@ def build_polish_step(
         (r, p), jac = value_and_batched_jacobian(flat, theta, how, has_aux=True)
         return r, p, jac
 
-    def init(theta):
-        r, p, jac = evaluate(theta)
-        landed = _landed(r, sizes, tolerances, config.depth)
-        mu = jnp.full(theta.shape[0], config.mu0, theta.dtype)
-        done = landed | ~jnp.isfinite(p) | ~jnp.all(jnp.isfinite(jac), axis=(1, 2))
-        return PolishState(theta, r, p, jac, mu, done, landed,
-                           jnp.zeros(theta.shape[0], jnp.int32))
+    def init(theta, m: int):
+        """The state before any evaluation: the first `step` evaluates θ and keeps it."""
+        n, d = theta.shape
+        dtype = theta.dtype
+        return PolishState(theta, jnp.zeros((n, m), dtype), jnp.full(n, jnp.inf, dtype),
+                           jnp.zeros((n, m, d), dtype), jnp.full(n, config.mu0, dtype),
+                           jnp.zeros(n, bool), jnp.zeros(n, bool), jnp.zeros(n, jnp.int32),
+                           jnp.ones(n, bool))
 
     def step(state: PolishState):
         dtype = state.theta.dtype
@@ -199,31 +214,34 @@ def build_polish_step(
         damped = hess + (state.mu * scale)[:, None, None] * jnp.eye(d, dtype=dtype)
         dz = -jnp.linalg.solve(damped, (grad * ~clamped)[..., None])[..., 0]
         trial = jnp.clip(theta + dz * width, low_, high_)
-        trial = jnp.where(state.done[:, None], theta, trial)
+        # N.B. a fresh row evaluates its own θ: one compiled program serves start and steps.
+        trial = jnp.where((state.done | state.fresh)[:, None], theta, trial)
         r_new, p_new, jac_new = evaluate(trial)
         dtheta = trial - theta
         model = r + jnp.einsum("nmd,nd->nm", jac, dtheta)
         predicted = jnp.sum(r**2, axis=1) - jnp.sum(model**2, axis=1)
         actual = state.objective - p_new
-        active = ~state.done
-        ok = (active & jnp.isfinite(p_new) & jnp.all(jnp.isfinite(jac_new), axis=(1, 2))
-              & (predicted > 0) & (actual >= ARMIJO * predicted))
+        finite = jnp.isfinite(p_new) & jnp.all(jnp.isfinite(jac_new), axis=(1, 2))
+        active = ~state.done & ~state.fresh
+        ok = (active & finite & (predicted > 0) & (actual >= ARMIJO * predicted))
+        ok |= state.fresh & finite
         ratio = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1), 0)
         # Fletcher's rule (as MuJoCo's least_squares), μ floored at 1e-12 of the scale.
         mu = jnp.where(ok & (ratio > 0.75), jnp.maximum(state.mu / 3, 1e-12), state.mu)
         mu = jnp.where(ok & (ratio < 0.25), mu * 2, mu)
         mu = jnp.where(active & ~ok, mu * 10, mu)
+        mu = jnp.where(state.fresh, state.mu, mu)
         keep = ok[:, None]
         theta = jnp.where(keep, trial, theta)
         r = jnp.where(keep, r_new, r)
         p = jnp.where(ok, p_new, state.objective)
         jac = jnp.where(ok[:, None, None], jac_new, jac)
         landed = _landed(r, sizes, tolerances, config.depth)
-        stalled = ok & (actual <= config.stall * jnp.abs(state.objective))
-        done = state.done | landed | stalled | (mu > config.mu_max)
+        stalled = ok & active & (actual <= config.stall * jnp.abs(state.objective))
+        done = state.done | landed | stalled | (mu > config.mu_max) | (state.fresh & ~finite)
         iterations = state.iterations + active.astype(jnp.int32)
-        return (PolishState(theta, r, p, jac, mu, done, landed, iterations),
-                {"accepted": ok})
+        return (PolishState(theta, r, p, jac, mu, done, landed, iterations,
+                            jnp.zeros_like(state.fresh)), {"accepted": ok & active})
 
     return init, step
 
@@ -287,13 +305,21 @@ def run_polish(
     theta0 = jnp.asarray(theta0)
     init, step = build_polish_step(fn, low, high, config, tolerances=tolerances, mode=mode)
     compile_ = (lambda f, name, *example: jax.jit(f)) if jit is None else jit
-    state = compile_(init, "polish-init", theta0)(theta0)
-    before = np.asarray(state.objective, np.float64)
+    m = sum(x.shape[1] for x in jax.eval_shape(fn, theta0))
+    state = init(theta0, m)
     stepper = compile_(step, "polish-step", state)
-    steps = 0
+    state, _ = stepper(state)  # evaluates θ0
+    before = np.asarray(state.objective, np.float64)
+    steps, history = 0, [int(jnp.sum(state.landed))]
     while steps < config.max_iters and not bool(jnp.all(state.done)):
         state, _ = stepper(state)
         steps += 1
+        history.append(int(jnp.sum(state.landed)))
+        # N.B. a few stragglers would hold the whole batch: each step costs all of it.
+        if (config.patience and len(history) > config.patience
+                and history[-1] == history[-1 - config.patience]
+                and int(jnp.sum(~state.done)) < STRAGGLERS * len(before)):
+            break
         if steps == 1 or steps % 5 == 0:
             say(f"polish {steps}/{config.max_iters}: {int(jnp.sum(state.landed))} of "
                 f"{len(before)} landed, {int(jnp.sum(~state.done))} still descending")

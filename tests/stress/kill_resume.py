@@ -51,6 +51,9 @@ def stable_plans(out: Path) -> dict:
     for section in ("screen", "robustness"):
         if data.get(section):
             data[section].pop("seconds", None)
+    for part in (data.get("polish") or {}).values():
+        if part:
+            part.pop("seconds", None)
     return data
 
 
