@@ -243,12 +243,18 @@ class LandingConfig:
         the screen and one landing rather than the end of the solve.
       radius: initial trust radius, in box widths.
       depth: a plan has landed within this share of each goal's tolerance.
+      sgd_max_iters: where the landing runs, the SGD phase stops after at
+        most this many iterations: Gauss–Newton refines in its place (Adam at
+        a fixed step circles an optimum at its step's scale); None: as
+        `stamp.sgd_max_iters`. Measured on billiards (seed 0, 2-core CPU):
+        16 of 16 task plans at 20 and at 80 SGD iterations, in 10 s less.
     """
 
     iterations: int = 20
     early: bool = True
     radius: float = 0.01
     depth: float = 0.25
+    sgd_max_iters: int | None = 20
 
     def __post_init__(self):
         _check_int("landing.iterations", self.iterations, 0)
@@ -257,6 +263,7 @@ class LandingConfig:
                     what="a number in (0, 1] (box widths)")
         _check_real("landing.depth", self.depth, 0, 1, open_low=True,
                     what="a number in (0, 1] (a share of the goal's tolerance)")
+        _check_int("landing.sgd_max_iters", self.sgd_max_iters, 0, none=True)
 
 
 #: Each group's class and its default, in `SolveConfig`'s order.
@@ -334,7 +341,8 @@ class SolveConfig:
       screen: where the particles start and restart (`ScreenConfig`).
       calibration: the gradient model's fidelity check (`CalibrationConfig`).
       polish: after STAMP, Levenberg–Marquardt on the task's residual costs
-        in the gradient model (`svgd.PolishConfig`); off (`max_iters` 0) or
+        in the gradient model (`svgd.PolishConfig`); `max_iters` None (the
+        default): 20 on an accelerator, off on a CPU (`solve.polish_iterations`);
         idle where the task declares no residuals.
       landing: Gauss–Newton on the same residuals in MuJoCo C, before STAMP
         (the screen's candidates) and after the polish (`LandingConfig`).

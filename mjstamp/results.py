@@ -182,6 +182,10 @@ def summarize(result, coverage: dict | None = None) -> dict:
             for name in ("landed", "unpolished", "svgd", "initial", "screen")
         },
         "polish": result.polish,
+        "found": {plan: {k: v for k, v in f.items() if k != "theta"}
+                  for plan, f in (result.found or {}).items()},
+        "first_plan_s": min((f["seconds"] for f in (result.found or {}).values()),
+                            default=None),
         "task_plans": [{k: r[k] for k in _ROW_KEYS if k in r} for r in result.rows],
         "robustness": _robustness_summary(result.robustness),
         "cost_scale": result.problem.cost_scale,

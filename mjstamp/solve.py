@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import time
 import warnings
 from collections import Counter
@@ -32,6 +33,7 @@ from mjstamp import checkpoint as checkpoint_mod
 from mjstamp import parallel, results, seeding, svgd, verify
 from mjstamp.config import SolveConfig
 from mjstamp.errors import FidelityWarning, MjstampError
+from mjstamp.fileio import write_atomic
 from mjstamp.progress import QUIET, Progress, ProgressLike
 from mjstamp.scenes import contacts, fidelity, uncertainty
 from mjstamp.tasks import Problem, Task, as_problem
@@ -118,6 +120,9 @@ class SolveResult:
         seconds of those >= 0.5 s, the largest by function).
       polish: the precision polish (`_polish_report`), or None where it did
         not run (off, or no residual costs).
+      found: {task plan: {"seconds", "source", "theta"}}, each task plan as it
+        was first verified in MuJoCo C during the solve (`Found`): the
+        screen's successes at once, then the landings', STAMP's, repair's.
     """
 
     problem: Problem
@@ -144,6 +149,7 @@ class SolveResult:
     devices: int = 1
     robustness: dict | None = None
     polish: dict | None = None
+    found: dict | None = None
 
     @property
     def task(self) -> Problem:
@@ -252,12 +258,37 @@ def _stamp_config(cfg: SolveConfig, problem: Problem, seed: int) -> svgd.StampCo
     """`cfg.stamp` with the solve's seed and motion_tol resolved (None: 1e-4 of the mean width).
 
     Its learning rates stay as given: None means the optimizers `_run_stamp`
-    passes, scaled per coordinate by the box (`_optimizer`).
+    passes, scaled per coordinate by the box (`_optimizer`). Where the landing
+    refines (residual costs, `landing.iterations` > 0), SGD stops after at most
+    `landing.sgd_max_iters` iterations.
     """
     motion = cfg.stamp.motion_tol
     if motion is None:
         motion = 1e-4 * float(_box_widths(problem).mean())
-    return dataclasses.replace(cfg.stamp, seed=seed, motion_tol=motion)
+    sgd = cfg.stamp.sgd_max_iters
+    if _lands(problem, cfg) and cfg.landing.sgd_max_iters is not None:
+        sgd = min(sgd, cfg.landing.sgd_max_iters)
+    return dataclasses.replace(cfg.stamp, seed=seed, motion_tol=motion, sgd_max_iters=sgd)
+
+
+def _lands(problem: Problem, cfg: SolveConfig) -> bool:
+    """Whether the solve lands its particles in C (`_land`): residual costs, landing on."""
+    return bool(cfg.landing.iterations and problem.residual_terms)
+
+
+def polish_iterations(cfg: SolveConfig) -> int:
+    """`polish.max_iters` resolved: None is 20 where JAX runs on an accelerator, 0 on a CPU.
+
+    N.B. measured on the 2-core CPU (README, "Precision"): on billiards' table the
+    outcome is rough at the scale of a goal (the derivative is exact, AD against
+    central differences at 1e-5, and predicts nothing at 1e-3), so Levenberg–Marquardt
+    in MJX lands few particles at 0.3-0.5 s a step, where the landing in C lands more
+    for a fifth of that; on an accelerator a batch of MJX rollouts costs about what
+    one does, and the polish is cheap beside it.
+    """
+    if cfg.polish.max_iters is not None:
+        return cfg.polish.max_iters
+    return 20 if jax.default_backend() != "cpu" else 0
 
 
 class _Evaluator:
@@ -395,20 +426,22 @@ def _polish(problem: Problem, cfg: SolveConfig, theta: np.ndarray, say,
     costs, or robust planning (the polish descends on the nominal model, and
     would undo what the draws' expected cost chose).
     """
-    if not cfg.polish.max_iters or not problem.residual_terms or problem.robust is not None:
-        if cfg.polish.max_iters and problem.robust is not None:
+    iterations = polish_iterations(cfg)
+    if not iterations or not problem.residual_terms or problem.robust is not None:
+        if iterations and problem.robust is not None:
             say("polish: off under robust planning (it descends on the nominal model)")
         return None
     terms = problem.residual_terms
     say(f"polishing {len(theta)} particles by Levenberg–Marquardt on "
-        f"{', '.join(t.name for t in terms)} (at most {cfg.polish.max_iters} iterations)")
+        f"{', '.join(t.name for t in terms)} (at most {iterations} iterations)")
     jit = problem_jit(problem)
+    config = dataclasses.replace(cfg.polish, max_iters=iterations)
     result = svgd.run_polish(
         parallel.shard_particles(problem.residuals, devices),
-        jnp.asarray(theta, problem.scene.dtype), problem.low, problem.high, cfg.polish,
+        jnp.asarray(theta, problem.scene.dtype), problem.low, problem.high, config,
         tolerances=problem.residual_tolerances(),
         jit=lambda fn, name, *example: jit(parallel.replicate_outputs(fn, devices),
-                                           f"{name} {cfg.polish} on {devices}", *example),
+                                           f"{name} {config} on {devices}", *example),
         progress=say)
     landed = "" if all(t is None for t in problem.residual_tolerances()) else (
         f"{int(result.landed.sum())} of {len(theta)} within their goals' tolerance, ")
@@ -455,7 +488,7 @@ def _land(problem: Problem, cfg: SolveConfig, theta, source, outcome: Outcome, e
     Returns:
       (theta, source, outcome, report or None where it did not run).
     """
-    if not cfg.landing.iterations or not problem.residual_terms:
+    if not _lands(problem, cfg):
         return theta, source, outcome, None
     say(f"landing {len(theta)} particles on their goals in MuJoCo C (Gauss–Newton on central "
         f"differences, at most {cfg.landing.iterations} iterations)")
@@ -491,8 +524,10 @@ def _land_early(problem: Problem, cfg: SolveConfig, theta0: np.ndarray, replay0,
             or not problem.residual_terms):
         return None
     say(f"landing the screen's {len(theta0)} chosen candidates in MuJoCo C")
+    # N.B. here a success is enough (a task plan verified early): the depth is the end's.
     result = verify.land(problem, theta0, iterations=cfg.landing.iterations,
-                         depth=cfg.landing.depth, radius=cfg.landing.radius, replay=replay0)
+                         depth=cfg.landing.depth, radius=cfg.landing.radius, replay=replay0,
+                         until="success")
     report = _landing_dict(result, len(theta0))
     found = result.theta[result.ok]
     plans = verify.decode(problem, verify.simulate_c(problem, found), found).plan if len(found) \
@@ -521,7 +556,10 @@ def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, res
     if isinstance(every_s, bool) or not isinstance(every_s, (int, float)) or not every_s >= 0:
         raise MjstampError(f"checkpoint_every_s={every_s!r} must be a number >= 0 (seconds)")
     # N.B. the device count resolved: a resume on other devices would shard otherwise.
-    settings = {"task": dict(problem.settings), "solve": {**cfg.flat_dict(), "devices": devices}}
+    # N.B. the SGD cap as the run applies it: the landing may lower it (`_stamp_config`).
+    settings = {"task": dict(problem.settings), "solve": {
+        **cfg.flat_dict(), "devices": devices,
+        "sgd_max_iters": _stamp_config(cfg, problem, seed).sgd_max_iters}}
     meta = {"task": problem.name, "version": __version__,
             "fingerprint": checkpoint_mod.fingerprint(problem.fingerprint, settings, seed),
             "seed": seed, "settings": settings}
@@ -596,10 +634,13 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     say, clock = Progress.of(progress, "solve"), {"start": time.perf_counter()}
     checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
                                         checkpoint_every_s, resume_hint, say, devices)
+    found = Found(say, clock["start"])
     theta0, screen, successes, replay0 = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
+    found.add_pools(successes, "screen")
     clock["screen"] = time.perf_counter()
     early = _land_early(problem, cfg, theta0_np, replay0, screen, successes, say)
+    found.add_pools(successes, "landed early")
     clock["early"] = time.perf_counter()
     calibration, report = None, {"calibrated": False}
     if cfg.calibration.enabled:
@@ -611,9 +652,13 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     problem = _posterior(problem, cfg, screen, seed, say)
     clock["calibrate"] = time.perf_counter()
     cpu = time.process_time()
-    with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
-        stamp = _run_stamp(problem, cfg, theta0, seed, say, devices=devices,
-                           checkpointer=checkpointer, resume=snap, successes=successes)
+    try:
+        with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
+            stamp = _run_stamp(problem, cfg, theta0, seed, say, devices=devices,
+                               checkpointer=checkpointer, resume=snap, successes=successes)
+    except checkpoint_mod.Interrupted:
+        found.save(checkpoint_dir)  # N.B. no plan verified is lost with the interrupted solve
+        raise
     clock["stamp"] = time.perf_counter()
     clock["stamp_cpu"] = time.process_time() - cpu
     theta = np.asarray(stamp.particles, np.float64)
@@ -626,7 +671,10 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         theta = polished.particles
     outcome = evaluate(theta)
     source = np.full(len(theta), "final", dtype=object)
+    found.add(outcome.verified.plan[outcome.good], theta[outcome.good],
+              "STAMP" if polished is None else "polished")
     theta, source, outcome, landing = _land(problem, cfg, theta, source, outcome, evaluate, say)
+    found.add(outcome.verified.plan[outcome.good], theta[outcome.good], "landed")
     clock["landing"] = time.perf_counter()
     svgd_theta = np.asarray(stamp.svgd_particles, np.float64)
     # N.B. θ0's C replay is the one made before STAMP: replayed once per solve.
@@ -643,10 +691,12 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     if cfg.robust.select:
         theta, source, outcome = _select_robust(problem, cfg, theta, source, outcome,
                                                 successes, evaluate, seed, say)
+    found.add(outcome.verified.plan[outcome.good], theta[outcome.good], "kept")
     returned = outcome.predicted.ok & np.isfinite(outcome.cost)
     clock["verify"] = time.perf_counter()
     theta, repaired, outcome = _repair(problem, cfg, theta, returned, outcome, evaluate, seed,
                                        say)
+    found.add(outcome.verified.plan[outcome.good], theta[outcome.good], "repaired")
     clock["repair"] = time.perf_counter()
     robust = _robustness(problem, cfg, theta, returned & outcome.verified.ok,
                          outcome.verified.plan, seed, say)
@@ -668,7 +718,53 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         rescue=_rescue_report(problem, cfg, stamp, visited["initial"][1], outcome),
         devices=devices, loss=loss, robustness=robust,
         polish=_polish_report(polished, landing, early, outcome, source),
+        found=found.as_dict(),
     )
+
+
+class Found:
+    """Task plans as they are first verified in MuJoCo C during a solve (plans stream).
+
+    Each new task plan is said at once through the progress reporter and
+    recorded with the seconds since the solve started, where it came from and
+    its θ; `SolveResult.found` holds the record, and a solve interrupted while
+    checkpointing writes it beside the checkpoint (`FOUND_FILE`) before it stops.
+    """
+
+    def __init__(self, say, started: float):
+        self.say, self.started = say, started
+        self.plans: dict[str, dict] = {}
+
+    def add(self, plans, theta, source: str) -> None:
+        """Records the task plans of verified plans (plans (m,) str, θ (m, d)) not seen yet."""
+        now = time.perf_counter() - self.started
+        for plan, th in zip(plans, np.asarray(theta, np.float64), strict=True):
+            plan = str(plan)
+            if plan in self.plans:
+                continue
+            self.plans[plan] = {"seconds": round(now, 3), "source": source,
+                                "theta": [float(x) for x in th]}
+            self.say(f"verified task plan {plan} at {now:.1f} s ({source}); "
+                     f"{len(self.plans)} so far")
+
+    def add_pools(self, pools: dict[str, np.ndarray], source: str) -> None:
+        """Records each task plan of {task plan: (m, d) verified plans, best first}."""
+        for plan, pool in sorted(pools.items()):
+            if len(pool):
+                self.add([plan], np.asarray(pool)[:1], source)
+
+    def as_dict(self) -> dict[str, dict]:
+        """{task plan: {"seconds", "source", "theta"}}, first found first."""
+        return dict(sorted(self.plans.items(), key=lambda kv: kv[1]["seconds"]))
+
+    def save(self, directory) -> None:
+        """Writes the record to `directory`/FOUND_FILE (atomically)."""
+        payload = json.dumps(self.as_dict(), indent=2).encode()
+        write_atomic(Path(directory) / FOUND_FILE, lambda f: f.write(payload))
+
+
+FOUND_FILE = "verified_so_far.json"
+"""What an interrupted solve verified before it stopped, beside its checkpoint (`Found.save`)."""
 
 
 class _Compiles:

@@ -1,5 +1,6 @@
 """Checkpoint and resume of a solve: kill -9, SIGTERM, refusals, reproducible plans.json."""
 
+import json
 import os
 import signal
 import subprocess
@@ -39,6 +40,7 @@ r.save(out, figures=False)
 
 # plans.json without what varies between runs (timings): the kill-and-resume benchmark's.
 sys.path.insert(0, str(TESTS.parent))
+from mjstamp.solve import FOUND_FILE  # noqa: E402
 from tests.stress.kill_resume import stable_plans as _stable  # noqa: E402
 
 
@@ -102,6 +104,9 @@ def test_sigterm_writes_a_checkpoint_and_says_how_to_continue(reference, tmp_pat
     message = proc.stderr.read().strip().splitlines()[-1]
     assert "SIGTERM" in message and "checkpoint of" in message and "RESUME" in message
     assert checkpoint.read_meta(tmp_path)["task"] == "tiny"
+    # What the screen had verified before the signal is kept beside the checkpoint.
+    kept = json.loads((tmp_path / FOUND_FILE).read_text())
+    assert kept and all(f["source"] in ("screen", "landed early") for f in kept.values())
     resumed = _start(tmp_path, "resume")
     assert resumed.wait(timeout=900) == 0, resumed.stderr.read()
     assert _stable(tmp_path) == reference

@@ -78,7 +78,8 @@ def test_polish_leaves_a_nonfinite_particle_alone():
 
 
 @pytest.mark.parametrize(("key", "value", "message"), [
-    ("polish.max_iters", -1, "polish.max_iters=-1 must be an integer >= 0"),
+    ("polish.max_iters", -1, "polish.max_iters=-1 must be an integer >= 0 or None"),
+    ("landing.sgd_max_iters", -2, "landing.sgd_max_iters=-2 must be an integer >= 0 or None"),
     ("polish.patience", True, "polish.patience=True must be an integer >= 0"),
     ("polish.depth", 0, r"polish.depth=0 must be a number in \(0, 1\]"),
     ("polish.mu0", 1e9, "polish.mu0=1000000000.0 must be below polish.mu_max"),
@@ -149,7 +150,7 @@ def test_solve_polishes_and_lands_and_reports_it(tiny_task):
     task = tiny_task(radius=0.005)
     base = {"particles": 8, "screen": {"candidates": 4},
             "stamp": {"svgd_max_iters": 2, "sgd_max_iters": 2, "min_iters": 0},
-            "verify": {"robustness_samples": 0}}
+            "verify": {"robustness_samples": 0}, "polish": {"max_iters": 20}}
     off = solve(task, {**base, "polish": {"max_iters": 0}, "landing": {"iterations": 0}},
                 progress=False)
     on = solve(task, base, progress=False)
@@ -159,6 +160,31 @@ def test_solve_polishes_and_lands_and_reports_it(tiny_task):
     assert report["gradient"]["particles"] == 8 and report["landing"]["particles"] == 8
     assert on.verified_mask().sum() > off.verified_mask().sum()
     assert "landing_s" in on.timings and "polish_s" in on.timings
+    # Plans stream: each task plan is recorded when first verified, the screen's first.
+    summary = on.summary()
+    assert set(on.verified.plan[on.verified_mask()]) <= set(summary["found"])
+    times = [f["seconds"] for f in on.found.values()]
+    assert times == sorted(times) and summary["first_plan_s"] == times[0]
+    assert times[0] <= on.timings["screen_s"] + on.timings["early_s"] + 1.0
+
+
+def test_polish_runs_by_default_on_an_accelerator_only(monkeypatch):
+    from mjstamp import solve as solve_mod
+
+    assert solve_mod.polish_iterations(SolveConfig()) == 0  # the test session's CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert solve_mod.polish_iterations(SolveConfig()) == 20
+    assert solve_mod.polish_iterations(SolveConfig.from_dict({"polish.max_iters": 3})) == 3
+
+
+def test_the_landing_shortens_sgd_where_it_refines(tiny_task):
+    from mjstamp import solve as solve_mod
+
+    problem = tiny_task().build()
+    cfg = SolveConfig()
+    assert solve_mod._stamp_config(cfg, problem, 0).sgd_max_iters == 20
+    off = SolveConfig.from_dict({"landing.sgd_max_iters": None})
+    assert solve_mod._stamp_config(off, problem, 0).sgd_max_iters == cfg.stamp.sgd_max_iters
 
 
 def test_polish_and_landing_need_residuals(tiny_task):
@@ -171,8 +197,9 @@ def test_polish_and_landing_need_residuals(tiny_task):
     bare.cost("aim", costs.aim("puck", "wall"))
     problem = bare.build()
     assert not problem.residual_terms
-    cfg, theta = SolveConfig(), np.zeros((4, 2))
+    cfg, theta = SolveConfig.from_dict({"polish.max_iters": 20}), np.zeros((4, 2))
     assert solve_mod._polish(problem, cfg, theta, print) is None
+    assert solve_mod._stamp_config(cfg, problem, 0).sgd_max_iters == cfg.stamp.sgd_max_iters
     said = []
     out = solve_mod._land(problem, cfg, theta, None, None, None, said.append)
     assert out == (theta, None, None, None) and not said

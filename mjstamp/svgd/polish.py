@@ -63,7 +63,9 @@ class PolishConfig:
 
     Attributes:
       max_iters: most iterations (each one evaluation of the residuals and
-        their Jacobians); 0 turns the polish off.
+        their Jacobians); 0 turns the polish off; None: the caller decides
+        (`mjstamp.solve`: by the device, `polish_iterations`), and
+        `run_polish` takes 20.
       patience: the batch stops once this many iterations landed no particle
         while fewer than a tenth of the particles still descend (each step
         costs the whole batch); 0: it runs while any descends.
@@ -79,7 +81,7 @@ class PolishConfig:
         scales: `mjstamp.verify.land` takes over there).
     """
 
-    max_iters: int = 20
+    max_iters: int | None = None
     patience: int = 3
     depth: float = 0.25
     stall: float = 1e-4
@@ -87,9 +89,11 @@ class PolishConfig:
     mu_max: float = 1e2
 
     def __post_init__(self):
-        if (isinstance(self.max_iters, bool) or not isinstance(self.max_iters, int)
+        if self.max_iters is not None and (
+                isinstance(self.max_iters, bool) or not isinstance(self.max_iters, int)
                 or self.max_iters < 0):
-            raise MjstampError(f"polish.max_iters={self.max_iters!r} must be an integer >= 0")
+            raise MjstampError(f"polish.max_iters={self.max_iters!r} must be an integer >= 0 "
+                               "or None")
         if (isinstance(self.patience, bool) or not isinstance(self.patience, int)
                 or self.patience < 0):
             raise MjstampError(f"polish.patience={self.patience!r} must be an integer >= 0")
@@ -301,6 +305,8 @@ def run_polish(
       A `PolishResult`.
     """
     started = time.perf_counter()
+    if config.max_iters is None:
+        config = dataclasses.replace(config, max_iters=20)
     say = Progress.of(progress, "polish")
     theta0 = jnp.asarray(theta0)
     init, step = build_polish_step(fn, low, high, config, tolerances=tolerances, mode=mode)

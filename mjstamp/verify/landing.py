@@ -75,7 +75,7 @@ def _evaluate(problem, theta, tolerances, depth, replay: Replay | None = None):
 
 def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
          radius: float = 0.01, min_radius: float = 1e-5,
-         replay: Replay | None = None) -> Landing:
+         replay: Replay | None = None, until: str = "landed") -> Landing:
     """Lands particles θ (n, d) on the task's residual goals by Gauss–Newton in MuJoCo C.
 
     Args:
@@ -86,11 +86,15 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
       radius: initial trust radius ρ, in box widths.
       min_radius: a particle whose ρ falls below this stops.
       replay: θ's C replay where the caller has it.
+      until: "landed" (a particle stops once landed) or "success" (once it
+        has any success in C: a task plan verified, not yet deep in its goal).
 
     Returns:
       A `Landing`.
     """
     started = time.perf_counter()
+    if until not in ("landed", "success"):
+        raise ValueError(f"land(until={until!r}); valid: landed, success")
     problem = as_problem(task)
     tolerances = problem.residual_tolerances()
     theta = np.array(theta, np.float64, copy=True)
@@ -103,7 +107,8 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
     centre, rho = theta.copy(), np.full(n, float(radius))
     best, best_p = theta.copy(), np.where(ok, p, np.inf)
     best_ok, best_landed = ok.copy(), landed.copy()
-    done = landed | ~np.isfinite(p)
+    enough = best_landed if until == "landed" else best_ok
+    done = enough | ~np.isfinite(p)
     its = np.zeros(n, int)
 
     def rank(p_, ok_, landed_):
@@ -175,7 +180,7 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         pool_r = np.concatenate([r[rows, None], sr, tr[:, None]], axis=1)
         take = np.arange(m)
         centre[rows], p[rows], r[rows] = pool[take, j], pool_p[take, j], pool_r[take, j]
-        done[rows] = best_landed[rows] | (rho[rows] < min_radius)
+        done[rows] = enough[rows] | (rho[rows] < min_radius)
     out = np.where(best_ok[:, None], best, centre)
     return Landing(out, best_ok, best_landed, np.where(best_ok, best_p, p), its, rollouts,
                    time.perf_counter() - started)

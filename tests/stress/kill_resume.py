@@ -54,6 +54,9 @@ def stable_plans(out: Path) -> dict:
     for part in (data.get("polish") or {}).values():
         if part:
             part.pop("seconds", None)
+    data.pop("first_plan_s", None)
+    for plan in (data.get("found") or {}).values():
+        plan.pop("seconds", None)
     return data
 
 
