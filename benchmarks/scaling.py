@@ -14,9 +14,10 @@ success while the physics stays the same:
   (d = 2K: 4, 8, 16, 32); task plan = the rails the ball touches and the goal;
 - `pushing` (k1 … k5): the registered pushing task with up to K pushes
   (`tasks.load("pushing", max_pushes=K)`, d = 7K: 7 … 35), as Table III;
-- `rarity` (r0.2 … r0.0125): billiards' table and balls (d = 2), the target
-  ball to end within r of a spot (0.6, 0.25) on the open table; the share of
-  shots that succeed falls about as r². N.B. billiards' own `pocket_radius`
+- `rarity` (r0.2 … r0.003): billiards' table and balls (d = 2), the target
+  ball to end within r of a spot (0.6, 0.25) on the open table, declared as
+  residuals (`Task.residuals`, tolerance r: what the landing descends on); the
+  share of shots that succeed falls about as r². N.B. billiards' own `pocket_radius`
   is no such knob: its pockets are corners, where the target's centre comes
   no nearer than √2 · 0.04 m ≈ 0.057 m without pressing into the walls, and
   shrinking the radius from 0.1 to 0.058 m only halved the share (1.16% to
@@ -37,8 +38,9 @@ succeed, `verify.robustness`, seed 0) of the plans the method returned.
 (the record's keys: see `record`):
 - "stamp": `mjstamp.solve` at the member's solve settings (`solve_config`:
   pushing's registered ones, `SolveConfig`'s defaults for the others), as a
-  user runs it; it sets its own time. Its plans are verified when the solve
-  ends, so each is "found" at its wall time.
+  user runs it; it sets its own time. Its plans stream: each returned task
+  plan is "found" when the solve first verified it in C (`SolveResult.found`:
+  the screen's successes, the landings', STAMP's).
 - "portfolio": STAMP given the member's budget as a portfolio (`run_portfolio`):
   half of it screening in C (`screen.seconds`), half of the iterations; not
   run by default (`--methods ... portfolio`).
@@ -264,7 +266,12 @@ def _solve_record(task, config, seed: int, **stamp) -> dict:
             plans.setdefault(str(result.verified.plan[i]), []).append(result.theta[i])
     screen = result.screen or {}
     rollouts = result.stamp.diagnostics.step_seconds.size * len(result.theta)
-    return record([net] * len(plans), net, rollouts + (screen.get("candidates") or 0),
+    # Plans stream: each returned task plan at the time the solve first verified it (its
+    # `found` record; compiles left in the timed run counted against it, as in `net`).
+    found = result.found or {}
+    at = [min(max(found[p]["seconds"] - compile_s, 0.0), net) if p in found else net
+          for p in plans]
+    return record(at, net, rollouts + (screen.get("candidates") or 0),
                   plans=plans, wall_with_compiles_s=wall,
                   compile_s=compile_s, particles=len(result.theta),
                   returned=int(result.returned.sum()), verified=int(ok.sum()),

@@ -62,9 +62,16 @@ class Landing:
 
 def _evaluate(problem, theta, tolerances, depth, replay: Replay | None = None):
     """(Σ r² (m,), residual (m, M), ok (m,), landed (m,)) of points θ (m, d) in C."""
-    replay = simulate_c(problem, theta) if replay is None else replay
-    parts = residuals_c(problem, replay, theta)
-    ok = np.asarray(decode(problem, replay, theta).ok, bool)
+    m = len(theta)
+    if replay is None:
+        # N.B. batches padded to a power of two rows (copies of the last): a task's controls
+        # (pushing's skills) and the poses are compiled per batch shape, and the active
+        # particles change in number every iteration.
+        theta = np.concatenate([theta, np.repeat(theta[-1:], (1 << (m - 1).bit_length()) - m,
+                                                 axis=0)])
+        replay = simulate_c(problem, theta)
+    parts = [part[:m] for part in residuals_c(problem, replay, theta)]
+    ok = np.asarray(decode(problem, replay, theta).ok, bool)[:m]
     landed = ok.copy()
     for part, tol in zip(parts, tolerances, strict=True):
         if tol is not None:
