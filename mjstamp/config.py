@@ -327,6 +327,13 @@ class SolveConfig:
 
     Attributes:
       particles: n >= 2 particles (candidate plans).
+      budget: None, or the solve's wall time in seconds, as a portfolio: the
+        C screen runs on in chunks while they still find new task plans (up to
+        a third of the budget, `seeding.screen_particles`' `until_dry`), then
+        SVGD and SGD share what is left but a fifth (kept for the polish, the
+        landing and verification) in the ratio of their iteration caps, each
+        phase ending at its deadline. The plans then depend on the machine's
+        speed; None (the default) keeps a seed's plans the same everywhere.
       devices: shard the particles' rollouts over this many devices
         (`mjstamp.parallel`): host devices on a CPU (`mjstamp.configure(devices=N)`
         first), local GPUs on a GPU machine; None: every device JAX sees. The
@@ -352,6 +359,7 @@ class SolveConfig:
 
     particles: int = 128
     devices: int | None = None
+    budget: float | None = None
     stamp: StampConfig = SOLVE_STAMP
     screen: ScreenConfig = ScreenConfig()
     calibration: CalibrationConfig = CalibrationConfig()
@@ -360,7 +368,8 @@ class SolveConfig:
     verify: VerifyConfig = VerifyConfig()
     robust: RobustConfig = RobustConfig()
 
-    def __init__(self, particles: int = 128, devices: int | None = None, *, stamp=None,
+    def __init__(self, particles: int = 128, devices: int | None = None, *,
+                 budget: float | None = None, stamp=None,
                  screen=None, calibration=None, polish=None, landing=None, verify=None,
                  robust=None, **flat):
         given = {"stamp": stamp, "screen": screen, "calibration": calibration,
@@ -378,6 +387,7 @@ class SolveConfig:
             changes[group][field] = value
         object.__setattr__(self, "particles", particles)
         object.__setattr__(self, "devices", devices)
+        object.__setattr__(self, "budget", budget)
         for name, (_, default) in _GROUPS.items():
             value = given[name]
             if isinstance(value, Mapping):
@@ -395,6 +405,8 @@ class SolveConfig:
                 f"{self.particles**2 * 8 / 2**30:.3g} GiB in float64"
             )
         _check_int("devices", self.devices, 1, none=True)
+        _check_real("budget", self.budget, 0, math.inf, open_low=True, none=True,
+                    what="a number of seconds > 0 or None")
         for name in ("svgd_learning_rate", "sgd_learning_rate"):
             if callable(getattr(self.stamp, name)):
                 raise MjstampError(f"solve setting stamp.{name} must be a number > 0 or None "
@@ -417,7 +429,8 @@ class SolveConfig:
     @classmethod
     def leaves(cls) -> dict[str, tuple[Any, str]]:
         """{dotted key: (its default in a solve, its annotation)}, in the order of the groups."""
-        out = {"particles": (128, "int"), "devices": (None, "int | None")}
+        out = {"particles": (128, "int"), "devices": (None, "int | None"),
+               "budget": (None, "float | None")}
         for name, (group_cls, default) in _GROUPS.items():
             for f in dataclasses.fields(group_cls):
                 if not (name == "stamp" and f.name == "seed"):
@@ -466,7 +479,7 @@ class SolveConfig:
                 raise MjstampError(f"unknown solve setting {key!r}{hint}; valid: "
                                    f"{valid_list(options, limit=60)}")
         base = base or cls()
-        top = {k: settings.get(k, getattr(base, k)) for k in ("particles", "devices")}
+        top = {k: settings.get(k, getattr(base, k)) for k in ("particles", "devices", "budget")}
         groups = {name: {k.split(".", 1)[1]: v for k, v in settings.items()
                          if k.startswith(name + ".")} for name in _GROUPS}
         return cls(**top, **{name: _group(name, getattr(base, name), changes)
@@ -486,7 +499,7 @@ class SolveConfig:
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready view, nested like the config ({"particles", "devices", "stamp": {...}})."""
-        return {"particles": self.particles, "devices": self.devices,
+        return {"particles": self.particles, "devices": self.devices, "budget": self.budget,
                 **{name: _group_dict(name, getattr(self, name)) for name in _GROUPS}}
 
     def flat_dict(self) -> dict[str, Any]:
@@ -497,7 +510,10 @@ class SolveConfig:
         """
         flat = {old: getattr(getattr(self, new.split(".")[0]), new.split(".")[1])
                 for old, new in FLAT_NAMES.items()}
-        return {"particles": self.particles, **flat, "devices": self.devices}
+        out = {"particles": self.particles, **flat, "devices": self.devices}
+        if self.budget is not None:  # N.B. only when set: earlier checkpoints keep their key
+            out["budget"] = self.budget
+        return out
 
 
 def _did_you_mean(key: str, options: list[str]) -> str:

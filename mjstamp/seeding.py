@@ -124,14 +124,16 @@ def _draws(problem, key: jax.Array, total: int, chunk: int, seconds: float, star
 
 def screen_particles(
     problem, key: jax.Array, n: int, *, screen: int = 64, chunk: int = 256,
-    seconds: float = 0.0,
+    seconds: float = 0.0, until_dry: int = 0,
 ) -> Seeded:
     """`seed_particles`, also handing back its successes and the particles' C replay (`Seeded`).
 
     `seconds` > 0 screens on past the `screen · n` candidates, a chunk at a
     time (fresh keys folded from `key`), until that much wall time has passed:
     the chunks it gets depend on the machine's speed, so the count is in the
-    report (`Screen.candidates`).
+    report (`Screen.candidates`). `until_dry` > 0 stops it sooner, once that
+    many chunks in a row past the first `screen · n` found no new task plan
+    (the screen's yield has dried up).
     """
     started = time.perf_counter()
     problem = as_problem(problem)
@@ -144,8 +146,11 @@ def screen_particles(
     states: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     kept: dict[int, np.ndarray] = {}
     costs: list[np.ndarray] = []
-    screened, cap = 0, max(POOL, n)
+    screened, cap, dry = 0, max(POOL, n), 0
     for start, part in _draws(problem, key, total, chunk, seconds, started):
+        if until_dry and dry >= until_dry:
+            break
+        plans_before = len(successes)
         screened = start + len(part)
         replay = verify.simulate_c(problem, part)
         decoded = problem.decode(replay, part)
@@ -166,6 +171,8 @@ def screen_particles(
         for members in groups.values():
             for _, i in members[depth:]:
                 states.pop(i, None)
+        if screened > total:
+            dry = 0 if len(successes) > plans_before else dry + 1
     costs = np.concatenate(costs)
     order = sorted(groups, key=lambda k: (not k.startswith("ok:"), groups[k][0][0]))
     chosen: list[int] = []

@@ -318,6 +318,28 @@ class _Evaluator:
                        self.problem.decode(replay, theta))
 
 
+BUDGET_SCREEN = 1 / 3
+"""With `SolveConfig.budget`: the most of it the screen runs for, while it still yields."""
+
+BUDGET_DRY = 2
+"""With `SolveConfig.budget`: the screen stops after this many chunks without a new task plan."""
+
+BUDGET_RESERVE = 0.2
+"""With `SolveConfig.budget`: the share kept after STAMP for the polish, landing and checks."""
+
+
+def _deadlines(cfg: SolveConfig, started: float) -> tuple[float | None, float | None]:
+    """(SVGD's, SGD's) deadlines of a budgeted solve: what is left but the reserve, split
+    in the ratio of the phases' iteration caps; (None, None) without a budget."""
+    if cfg.budget is None:
+        return None, None
+    now = time.perf_counter()
+    left = max(0.0, started + cfg.budget * (1 - BUDGET_RESERVE) - now)
+    caps = cfg.stamp.svgd_max_iters + cfg.stamp.sgd_max_iters
+    share = cfg.stamp.svgd_max_iters / caps if caps else 1.0
+    return now + left * share, now + left
+
+
 def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
     """(θ0 (n, d), screen report or None, the screen's successes by task plan, θ0's C replay).
 
@@ -326,14 +348,19 @@ def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
     and handed to calibration, the check of MJX and the evaluation of θ0.
     """
     key = jax.random.key(seed)
-    if cfg.screen.candidates <= 1 and not cfg.screen.seconds:
+    seconds, until_dry = cfg.screen.seconds, 0
+    if cfg.budget is not None and cfg.screen.candidates > 1:
+        # A portfolio: the screen runs on while its chunks still find new task plans.
+        seconds, until_dry = max(seconds, cfg.budget * BUDGET_SCREEN), BUDGET_DRY
+    if cfg.screen.candidates <= 1 and not seconds:
         theta0 = problem.init(key, cfg.particles)
         replay = verify.simulate_c(problem, np.asarray(theta0, np.float64))
         return theta0, None, {}, replay
     say(f"screening {cfg.screen.candidates * cfg.particles} candidates in MuJoCo C"
-        + (f", then more for {cfg.screen.seconds:g} s in all" if cfg.screen.seconds else ""))
+        + (f", then more for up to {seconds:g} s in all" if seconds else "")
+        + (f" while they find new task plans" if until_dry else ""))
     seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen.candidates,
-                                      seconds=cfg.screen.seconds)
+                                      seconds=seconds, until_dry=until_dry)
     # N.B. the candidates are draws in the scene's precision: the cast is exact, and
     # the screen's replay is that of θ0.
     theta0 = jnp.asarray(seeded.particles, problem.scene.dtype)
@@ -389,7 +416,8 @@ def _judge(problem: Problem, theta: np.ndarray, qpos_mjx: np.ndarray, qpos_c: np
 
 
 def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress: Progress, *,
-               devices: int = 1, checkpointer=None, resume=None, successes=None):
+               devices: int = 1, checkpointer=None, resume=None, successes=None,
+               deadlines=(None, None)):
     widths = _box_widths(problem)
     discrete = {}
     if problem.has_actions:
@@ -411,7 +439,7 @@ def _run_stamp(problem: Problem, cfg: SolveConfig, theta0, seed: int, progress: 
             f"stamp-{name} {cfg} on {devices}", *example),
         redraw=seeding.Redraw(problem, successes or {}, near=cfg.screen.rescue_near,
                               jitter=cfg.stamp.svgd_step),
-        checkpoint=checkpointer, resume=resume,
+        checkpoint=checkpointer, resume=resume, deadlines=deadlines,
         **discrete,
     )
     jax.block_until_ready(result.particles)
@@ -655,7 +683,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     try:
         with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
             stamp = _run_stamp(problem, cfg, theta0, seed, say, devices=devices,
-                               checkpointer=checkpointer, resume=snap, successes=successes)
+                               checkpointer=checkpointer, resume=snap, successes=successes,
+                               deadlines=_deadlines(cfg, clock["start"]))
     except checkpoint_mod.Interrupted:
         found.save(checkpoint_dir)  # N.B. no plan verified is lost with the interrupted solve
         raise

@@ -215,3 +215,27 @@ def test_jacobian_with_aux_matches_without():
         out2, jac2 = value_and_batched_jacobian(lambda z: fn(z)[0], x, mode)
         np.testing.assert_allclose(jac, jac2, rtol=1e-12)
         np.testing.assert_allclose(aux, x.sum(1))
+
+
+def test_a_budget_splits_the_solve_and_screens_while_it_yields(tiny_task):
+    import time
+
+    from mjstamp import seeding
+    from mjstamp import solve as solve_mod
+
+    with pytest.raises(MjstampError, match="budget=0 must be a number of seconds > 0 or None"):
+        SolveConfig(budget=0)
+    assert solve_mod._deadlines(SolveConfig(), time.perf_counter()) == (None, None)
+    cfg = SolveConfig.from_dict({"budget": 100})
+    start = time.perf_counter()
+    svgd_end, sgd_end = solve_mod._deadlines(cfg, start)
+    assert start < svgd_end < sgd_end <= start + 80 + 1e-6  # a fifth kept for the checks
+    share = cfg.stamp.svgd_max_iters / (cfg.stamp.svgd_max_iters + cfg.stamp.sgd_max_iters)
+    assert (svgd_end - start) / (sgd_end - start) == pytest.approx(share, abs=0.01)
+    # The screen stops once its chunks find no new task plan, long before its seconds.
+    problem = tiny_task().build()
+    started = time.perf_counter()
+    seeded = seeding.screen_particles(problem, jax.random.key(0), 8, screen=4, chunk=64,
+                                      seconds=60, until_dry=2)
+    assert time.perf_counter() - started < 30
+    assert seeded.screen.candidates > 32  # it screened on past the first 8 · 4

@@ -124,6 +124,20 @@ def test_iteration_cap_is_the_fallback():
     assert not res.svgd_converged and not res.sgd_converged
 
 
+def test_deadlines_end_each_phase_at_its_share_of_a_budget():
+    """A phase whose deadline has passed ends after the iteration it is in, as at its cap."""
+    import time
+
+    config = StampConfig(svgd_max_iters=15, sgd_max_iters=10, rtol=0.0, motion_tol=0.0)
+    now = time.perf_counter()
+    res = run_stamp(two_modes, uniform_init, None, config, progress=False,
+                    deadlines=(now, now + 3600))
+    assert (res.svgd_iters, res.sgd_iters) == (1, 10)
+    res = run_stamp(two_modes, uniform_init, None, config, progress=False,
+                    deadlines=(None, now))
+    assert (res.svgd_iters, res.sgd_iters) == (15, 1)
+
+
 def test_discrete_svgd_and_density_features_plug_in():
     """log_target_fn and density features run through run_stamp."""
 

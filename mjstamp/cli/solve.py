@@ -25,6 +25,10 @@ def add_parser(subparsers):
     solve.add_argument("task", help="registered task name (see `mjstamp tasks`)")
     solve.add_argument("--particles", type=int, default=None, help="particles (plans) to move")
     solve.add_argument("--seed", type=parse_seed, default=0)
+    solve.add_argument("--budget", type=parse_seconds("--budget"), metavar="S", default=None,
+                       help="wall time of the solve, as a portfolio: the C screen runs on "
+                       "while it finds new task plans, STAMP's phases end at their share "
+                       "(plans then depend on the machine's speed)")
     solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here "
                        "(and, while STAMP runs, checkpoint.npz)")
     solve.add_argument("--resume", metavar="DIR", help="continue the unfinished solve whose "
@@ -119,6 +123,8 @@ def _overrides(args) -> dict:
         if args.particles < 2:
             raise MjstampError(f"--particles={args.particles} must be >= 2")
         overrides["particles"] = args.particles
+    if args.budget is not None:
+        overrides["budget"] = args.budget
     if args.robust is not None:
         overrides["robust.draws"] = args.robust
         if args.robust and not any(k in ("robust.select", "robust") for k in overrides):

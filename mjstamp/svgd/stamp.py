@@ -388,6 +388,7 @@ def run_stamp(
     redraw: Callable[[jax.Array, int], jax.Array] | None = None,
     checkpoint: Callable[[Callable[[], LoopSnapshot]], None] | None = None,
     resume: LoopSnapshot | None = None,
+    deadlines: tuple[float | None, float | None] = (None, None),
 ) -> StampResult:
     """Runs STAMP: (discrete) SVGD until converged, then SGD until converged.
 
@@ -427,6 +428,9 @@ def run_stamp(
         keep one (say every 30 s) and may raise to stop the run.
       resume: a `LoopSnapshot` of a run with the same arguments: the run
         continues after its iteration instead of starting afresh.
+      deadlines: (SVGD's, SGD's) `time.perf_counter()` times after which the
+        phase ends at its next iteration as at its cap (None: no deadline); a
+        run with one depends on the machine's speed, so a resumed one may differ.
 
     Returns:
       `StampResult`.
@@ -463,7 +467,7 @@ def run_stamp(
         svgd_optimizer, sgd_optimizer, particles.shape[1],
     )  # fmt: skip
     loop = _Loop(config, jit, n=particles.shape[0], progress=Progress.of(progress).under("stamp"),
-                 redraw=redraw, checkpoint=checkpoint)
+                 redraw=redraw, checkpoint=checkpoint, deadlines=deadlines)
     carry = _Carry.init(key, particles.shape[0], backtrack=config.backtrack)
     if resume is not None:
         carry = loop.restore(resume, particles.shape, carry)
@@ -552,8 +556,9 @@ class _Loop:
 
     def __init__(
         self, config: StampConfig, jit, *, n: int, progress: Progress,
-        redraw=None, checkpoint=None,
+        redraw=None, checkpoint=None, deadlines=(None, None),
     ):
+        self.deadlines = deadlines
         self.checkpoint = checkpoint
         self.redraw = redraw
         # N.B. without a source of fresh particles a non-finite one just stays frozen.
@@ -684,6 +689,10 @@ class _Loop:
                                 self.snapshot(phase, t, state, carry))
             if self._converged(means, moves):
                 return state, carry, True
+            deadline = self.deadlines[0 if phase == PHASE_SVGD else 1]
+            if deadline is not None and time.perf_counter() >= deadline:
+                self.say(f"{name.upper()}: its share of the budget spent after {t} iterations")
+                break
         return state, carry, False
 
     def _iterate(self, phase: int, t: int, step, state: SVGDState, carry: _Carry, threshold):
