@@ -422,8 +422,7 @@ class SolveConfig:
 
     @staticmethod
     def groups() -> list[str]:
-        """Names of the groups: "stamp", "screen", "calibration", "polish", "landing", "verify",
-        "robust"."""
+        """Names of the groups ("stamp", "screen", "calibration", "polish", "landing", ...)."""
         return list(_GROUPS)
 
     @classmethod

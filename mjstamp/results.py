@@ -715,7 +715,7 @@ def _particles_line(summary: dict) -> str:
 
 
 def _polish_line(polish: dict | None) -> str:
-    """'\npolish: ...' (the gradient model's polish and the landings in C), or ''."""
+    """A line 'polish: ...' (the gradient model's polish, the landings in C), or ''."""
     if not polish:
         return ""
     parts = []

@@ -329,8 +329,11 @@ BUDGET_RESERVE = 0.2
 
 
 def _deadlines(cfg: SolveConfig, started: float) -> tuple[float | None, float | None]:
-    """(SVGD's, SGD's) deadlines of a budgeted solve: what is left but the reserve, split
-    in the ratio of the phases' iteration caps; (None, None) without a budget."""
+    """(SVGD's, SGD's) deadlines of a budgeted solve; (None, None) without a budget.
+
+    What is left of the budget but its reserve, split in the ratio of the
+    phases' iteration caps.
+    """
     if cfg.budget is None:
         return None, None
     now = time.perf_counter()
@@ -358,7 +361,7 @@ def _initial_particles(problem: Problem, cfg: SolveConfig, seed: int, say):
         return theta0, None, {}, replay
     say(f"screening {cfg.screen.candidates * cfg.particles} candidates in MuJoCo C"
         + (f", then more for up to {seconds:g} s in all" if seconds else "")
-        + (f" while they find new task plans" if until_dry else ""))
+        + (" while they find new task plans" if until_dry else ""))
     seeded = seeding.screen_particles(problem, key, cfg.particles, screen=cfg.screen.candidates,
                                       seconds=seconds, until_dry=until_dry)
     # N.B. the candidates are draws in the scene's precision: the cast is exact, and

@@ -162,7 +162,8 @@ def build_polish_step(
     Args:
       fn: θ (n, d) -> [r_k (n, m_k)], the residuals of each term,
         particle-separable; the objective is P = Σ_k ‖r_k‖².
-      low, high: (d,) the box.
+      low: (d,) the box's lower bounds.
+      high: (d,) its upper bounds.
       config: `PolishConfig`.
       tolerances: per term, the norm ‖r_k‖ within which its goal is met, or None.
       mode: how the Jacobian is taken: 'fwd' (d tangents), 'rev' (m pullbacks)
@@ -297,6 +298,13 @@ def run_polish(
     """Polishes particles θ0 (n, d) on residuals `fn` (see `build_polish_step`).
 
     Args:
+      fn: θ (n, d) -> [r_k (n, m_k)] (`build_polish_step`).
+      theta0: (n, d) the particles.
+      low: (d,) the box's lower bounds.
+      high: (d,) its upper bounds.
+      config: `PolishConfig` (max_iters None: 20).
+      tolerances: per term, its goal's radius in the units of r_k, or None.
+      mode: the Jacobian's mode ('fwd', 'rev', 'auto').
       jit: `jit(fn, name, *example) -> compiled fn` (the solve's trace cache);
         None: `jax.jit`.
       progress: hears a line per few iterations (`mjstamp.progress`).

@@ -159,7 +159,7 @@ def simulate_mjx(task, theta) -> Replay:
 
 
 def _pose_fn(problem):
-    """qpos (nq,) -> {field: pose} of `FIELDS` but the states: what a cost reads of a C state."""
+    """The poses a cost reads of one C state: qpos (nq,) -> {field: pose} (`FIELDS`)."""
     kinematics = _kinematics(problem)
 
     def pose(qpos):
