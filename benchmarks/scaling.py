@@ -267,10 +267,9 @@ def _solve_record(task, config, seed: int, **stamp) -> dict:
     screen = result.screen or {}
     rollouts = result.stamp.diagnostics.step_seconds.size * len(result.theta)
     # Plans stream: each returned task plan at the time the solve first verified it (its
-    # `found` record; compiles left in the timed run counted against it, as in `net`).
+    # `found` record, compiles before it included: their times are not known apart).
     found = result.found or {}
-    at = [min(max(found[p]["seconds"] - compile_s, 0.0), net) if p in found else net
-          for p in plans]
+    at = [min(found[p]["seconds"], net) if p in found else net for p in plans]
     return record(at, net, rollouts + (screen.get("candidates") or 0),
                   plans=plans, wall_with_compiles_s=wall,
                   compile_s=compile_s, particles=len(result.theta),
