@@ -276,6 +276,7 @@ def _solve_record(task, config, seed: int, **stamp) -> dict:
                   returned=int(result.returned.sum()), verified=int(ok.sum()),
                   screen_task_plans=len(screen.get("task_plans", {})),
                   screen_candidates=screen.get("candidates"), timings=result.timings,
+                  polish=result.polish,
                   settings=cfg.flat_dict(), found=sorted(plans))
 
 
