@@ -14,9 +14,10 @@ coordinates (ρ its trust radius in box widths w) and the Gauss–Newton step
 from their central differences, truncated to ρ, all in batched MuJoCo C. The
 centre moves to the best of the step and the stencil; ρ doubles after a
 well-predicted step and quarters after a poor one. Every point replayed is
-decoded: a particle keeps its best success (lowest Σ r²) and stops once one is
-within `depth` of its goals' tolerances (landed), when ρ falls below
-`min_radius`, or after `iterations`.
+decoded: a particle keeps its best success (lowest Σ r²; in its own task plan
+where it held one already, so landing deepens a plan and never swaps it for
+another particle's) and stops once one is within `depth` of its goals'
+tolerances (landed), when ρ falls below `min_radius`, or after `iterations`.
 
 Cheap where it matters: a C rollout costs a few µs a step against ~100 times
 that for an MJX value and gradient, so 20 iterations of a 2-D plan (5
@@ -61,7 +62,7 @@ class Landing:
 
 
 def _evaluate(problem, theta, tolerances, depth, replay: Replay | None = None):
-    """(Σ r² (m,), residual (m, M), ok (m,), landed (m,)) of points θ (m, d) in C."""
+    """(Σ r² (m,), residual (m, M), ok (m,), landed (m,), plan (m,)) of points θ (m, d) in C."""
     m = len(theta)
     if replay is None:
         # N.B. batches padded to a power of two rows (copies of the last): a task's controls
@@ -71,13 +72,14 @@ def _evaluate(problem, theta, tolerances, depth, replay: Replay | None = None):
                                                  axis=0)])
         replay = simulate_c(problem, theta)
     parts = [part[:m] for part in residuals_c(problem, replay, theta)]
-    ok = np.asarray(decode(problem, replay, theta).ok, bool)[:m]
+    decoded = decode(problem, replay, theta)
+    ok = np.asarray(decoded.ok, bool)[:m]
     landed = ok.copy()
     for part, tol in zip(parts, tolerances, strict=True):
         if tol is not None:
             landed &= np.linalg.norm(part, axis=1) <= depth * tol
     r = np.concatenate(parts, axis=1)
-    return np.sum(r**2, axis=1), r, ok, landed
+    return np.sum(r**2, axis=1), r, ok, landed, np.asarray(decoded.plan, dtype=object)[:m]
 
 
 def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
@@ -109,7 +111,9 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
     low, high, movable, clip = _box(problem)
     width = np.where(movable, high - low, 0.0)
     axes = np.flatnonzero(movable)
-    p, r, ok, landed = _evaluate(problem, theta, tolerances, depth, replay)
+    p, r, ok, landed, plan = _evaluate(problem, theta, tolerances, depth, replay)
+    # N.B. a particle that already holds a task plan keeps it: landing deepens, never swaps.
+    target = np.where(ok, plan, None)
     rollouts = 0 if replay is not None else n
     centre, rho = theta.copy(), np.full(n, float(radius))
     best, best_p = theta.copy(), np.where(ok, p, np.inf)
@@ -122,8 +126,11 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         """Lower is better: landed (by Σ r²) < success (by Σ r²) < anything else (inf)."""
         return np.where(landed_, -1.0 / (1.0 + p_), np.where(ok_, p_, np.inf))
 
-    def keep(rows, pts, p_, ok_, landed_):
-        """Each row's best success among its points pts (len(rows), s, d)."""
+    def keep(rows, pts, p_, ok_, landed_, plan_):
+        """Each row's best success among its points pts (len(rows), s, d), in its task plan."""
+        mine = target[rows][:, None]
+        ok_ = ok_ & ((mine == None) | (plan_ == mine))  # noqa: E711 - elementwise on objects
+        landed_ = landed_ & ok_
         score = rank(p_, ok_, landed_)
         j = np.argmin(score, axis=1)
         take = np.arange(len(rows))
@@ -146,11 +153,11 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         pts = centre[rows, None] + step
         pts = np.where(clip, np.clip(pts, low, high), pts)
         flat = pts.reshape(-1, d)
-        sp, sr, sok, sland = _evaluate(problem, flat, tolerances, depth)
+        sp, sr, sok, sland, splan = _evaluate(problem, flat, tolerances, depth)
         rollouts += len(flat)
-        sp, sok, sland = (a.reshape(m, 2 * k) for a in (sp, sok, sland))
+        sp, sok, sland, splan = (a.reshape(m, 2 * k) for a in (sp, sok, sland, splan))
         sr = sr.reshape(m, 2 * k, -1)
-        keep(rows, pts, sp, sok, sland)
+        keep(rows, pts, sp, sok, sland, splan)
         # Central differences in box units (the clipped offsets actually taken).
         dz = (pts[:, 0::2, axes] - pts[:, 1::2, axes]).diagonal(axis1=1, axis2=2)  # (m, k)
         dz = dz / width[axes]
@@ -168,9 +175,9 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         trial = centre[rows].copy()
         trial[:, axes] += delta * width[axes]
         trial = np.where(clip, np.clip(trial, low, high), trial)
-        tp, tr, tok, tland = _evaluate(problem, trial, tolerances, depth)
+        tp, tr, tok, tland, tplan = _evaluate(problem, trial, tolerances, depth)
         rollouts += m
-        keep(rows, trial[:, None], tp[:, None], tok[:, None], tland[:, None])
+        keep(rows, trial[:, None], tp[:, None], tok[:, None], tland[:, None], tplan[:, None])
         model = r[rows] + np.einsum("mrk,mk->mr", jac, (trial - centre[rows])[:, axes]
                                     / width[axes])
         predicted = p[rows] - np.sum(model**2, axis=1)
