@@ -1,11 +1,12 @@
 """Where gradients pay (issue 29): families whose dimension or rarity grows, samplers in C.
 
-    python -m benchmarks.scaling [--families arm pushing rarity] [--members k2 k4 ...]
+    python -m benchmarks.scaling [--families arm pushing rarity pushing_goal arm_goal jaco]
+        [--members k2 k4 ...]
         [--samples N] [--budget-s S|stamp] [--budget-from FILE]
         [--methods stamp portfolio screen+adam random cmaes] [--seed S] [--json FILE] [--tiny]
         [--figures DIR] [--report FILE]
 
-Three families of problems written as a user would write them with mjstamp's
+Families of problems written as a user would write them with mjstamp's
 public API; in each, one knob raises the dimension d of θ or the rarity of
 success while the physics stays the same:
 
@@ -21,10 +22,18 @@ success while the physics stays the same:
   is no such knob: its pockets are corners, where the target's centre comes
   no nearer than √2 · 0.04 m ≈ 0.057 m without pressing into the walls, and
   shrinking the radius from 0.1 to 0.058 m only halved the share (1.16% to
-  0.58% of 20,000 shots).
+  0.58% of 20,000 shots);
+- `pushing_goal` (g0.08 … g0.01): pushing at K = 2 (d = 14), its goal region
+  shrunk from its own ± 8 cm to ± 1 cm (`goal_half_size`);
+- `arm_goal` (r0.08 … r0.01): the arm strike at K = 2 (d = 4), the ball to
+  pass within r of a goal's centre (the suite's r: 8 cm);
+- `jaco` (r0.1 … r0.01): dm_control's Jaco (the registered task's scene and
+  controls, d = 9) to push the brick to end within r of a point (JACO_SPOT),
+  declared as residuals with tolerance r; the registered task's goal regions
+  take 17% of uniform shots.
 
 For each member: d and the share of uniform samples over θ's box that
-succeed in MuJoCo C (`modes.monte_carlo`: the same replay and decode as a
+succeed in MuJoCo C (seed 0's shots whatever `--seed`: the share is the member's) (`modes.monte_carlo`: the same replay and decode as a
 solve's; `--samples N`, the issue's aim 10⁶), with the task plans those
 samples met; where none succeeds, `success_share` is the rule-of-three upper
 bound 3/N and `success_share_is_upper_bound` says so. Then each method of
@@ -90,6 +99,14 @@ SPOT = (0.6, 0.25)
 ARM_KNOTS = (2, 4, 8, 16)
 PUSHES = (1, 2, 3, 4, 5)
 SPOT_RADII = (0.2, 0.1, 0.05, 0.025, 0.0125, 0.006, 0.003)
+GOAL_HALF_SIZES = (0.08, 0.04, 0.02, 0.01)
+"""pushing_goal: the goal region's half-size (m), from the shipped 8 cm to 1 cm."""
+ARM_RADII = (0.08, 0.04, 0.02, 0.01)
+"""arm_goal: how near the goal's centre the ball must pass (m), from the suite's 8 cm."""
+JACO_SPOT = (0.5, 0.135)
+"""Where the jaco family's brick must end (m): the registered task's post goal, 10.5 cm
+pushed (the brick starts at y = 0.03, its centre stops at y = 0.15 against the post)."""
+JACO_RADII = (0.1, 0.05, 0.02, 0.01)
 
 
 def arm(knots: int):
@@ -139,14 +156,72 @@ def spot(radius: float):
     return task
 
 
+def arm_goal(radius: float):
+    """The suite's arm strike at 2 knots per motor, the ball to pass within `radius` of a goal."""
+    use_suite()
+    from suite.tasks import arm_strike
+
+    return arm_strike(2, radius=radius)
+
+
+def pushing_goal(half_size: float):
+    """The registered pushing task at 2 pushes, its goal region ± `half_size` (m)."""
+    from mjstamp import tasks
+
+    return tasks.load("pushing", max_pushes=2, goal_half_size=half_size)[0]
+
+
+def jaco_spot(radius: float):
+    """The Jaco's scene and controls: push the brick to end within `radius` of JACO_SPOT.
+
+    As the registered `jaco` task (θ = velocity knots of the three large
+    joints, task plan = whether the hand touched the brick and the brick the
+    post) but its goal a point: the brick's final (x, y) declared as
+    residuals with tolerance `radius`, and "spot" where it ends within it.
+    """
+    import jax.numpy as jnp
+
+    from mjstamp.tasks import Task, costs, jaco
+
+    config = jaco.default_config()
+    sc = jaco.scene(config)
+    task = Task(f"jaco_spot_r{radius:g}", sc, horizon=int(config["horizon"]),
+                description=f"push the brick to end within {radius:g} m of {JACO_SPOT}")
+    limits = np.array([sc.m.actuator_ctrlrange[sc.actuator(f"jaco_arm/{j}")]
+                       for j in jaco.DRIVEN])
+    limits[1:] = np.clip(limits[1:], -config["pitch_speed"], config["pitch_speed"])
+    knots = int(config["knots"])
+    task.box("velocity", low=np.repeat(limits[:, 0], knots), high=np.repeat(limits[:, 1], knots))
+    task.controls(jaco.velocity_knots("velocity", sc, knots, task.horizon))
+    task.contact("hand_brick", jaco.FIST, jaco.BRICK)
+    task.contact("brick_post", jaco.BRICK, "post")
+    brick = jaco.brick_body(sc)
+    task.cost("aim", costs.aim(jaco.FIST, jaco.BRICK), weight=config["aim_weight"])
+    task.residuals("spot", lambda r: r.body_pos(brick)[:, -1, :2] - jnp.asarray(JACO_SPOT),
+                   weight=config["goal_weight"], tolerance=radius)
+
+    def ends_on_spot(replay):
+        ok = np.linalg.norm(replay.body_pos(brick)[:, -1, :2] - np.asarray(JACO_SPOT),
+                            axis=-1) < radius
+        return ok, np.where(ok, "spot", "").astype(object)
+
+    task.success(ends_on_spot)
+    task.display(trace=(brick,))
+    return task
+
+
 FAMILIES: dict[str, dict[str, Callable]] = {
     "arm": {f"k{k}": (lambda k=k: arm(k)) for k in ARM_KNOTS},
     "pushing": {f"k{k}": (lambda k=k: pushing(k)) for k in PUSHES},
     "rarity": {f"r{r:g}": (lambda r=r: spot(r)) for r in SPOT_RADII},
+    "pushing_goal": {f"g{h:g}": (lambda h=h: pushing_goal(h)) for h in GOAL_HALF_SIZES},
+    "arm_goal": {f"r{r:g}": (lambda r=r: arm_goal(r)) for r in ARM_RADII},
+    "jaco": {f"r{r:g}": (lambda r=r: jaco_spot(r)) for r in JACO_RADII},
 }
 """{family: {member: () -> a fresh Task}}, smallest dimension (or commonest success) first."""
 
-TINY = {"arm": ["k2"], "pushing": ["k1"], "rarity": ["r0.2"]}
+TINY = {"arm": ["k2"], "pushing": ["k1"], "rarity": ["r0.2"], "pushing_goal": ["g0.08"],
+        "arm_goal": ["r0.08"], "jaco": ["r0.1"]}
 """--tiny: one member per family."""
 
 
@@ -173,12 +248,17 @@ def success_share(task, samples: int, *, seed: int = 0) -> dict:
 
 
 def solve_config(family: str, member: str) -> dict | None:
-    """The solve settings a user runs a member at: pushing's registered ones, else the defaults."""
-    if family != "pushing":
-        return None
+    """The solve settings a user runs a member at: a registered task's (pushing's, the
+    Jaco's), else the defaults."""
     from mjstamp import tasks
 
-    return tasks.load("pushing", max_pushes=int(member.removeprefix("k")))[1].as_dict()
+    if family == "pushing":
+        return tasks.load("pushing", max_pushes=int(member.removeprefix("k")))[1].as_dict()
+    if family == "pushing_goal":
+        return tasks.load("pushing", max_pushes=2)[1].as_dict()
+    if family == "jaco":
+        return tasks.load("jaco")[1].as_dict()
+    return None
 
 
 ROBUSTNESS_SAMPLES = 32
@@ -346,7 +426,8 @@ def measure(families: dict[str, list[str]], *, samples: int, budget_s: float | s
             task = FAMILIES[family][member]()
             config = configs(family, member)
             started = time.perf_counter()
-            row = {"dim": task.dim, **success_share(task, samples, seed=seed), "methods": {}}
+            # The share is the member's, whatever the methods' seed: its shots are seed 0's.
+            row = {"dim": task.dim, **success_share(task, samples), "methods": {}}
             bound = "<= " if row["success_share_is_upper_bound"] else ""
             say(f"{family} {member}: d = {task.dim}, success share {bound}"
                 f"{row['success_share']:.3g} ({row['successes']}/{samples}, "

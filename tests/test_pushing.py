@@ -106,6 +106,8 @@ def test_bad_settings_are_one_line_errors(tmp_path):
         tasks.load("pushing", max_pushes=0)
     with pytest.raises(MjstampError, match=r"goal region at \(1.5, 0.3\).*outside the workspace"):
         tasks.load("pushing", goal_x=1.5)
+    with pytest.raises(MjstampError, match=r"goal_half_size=0 must be > 0"):
+        tasks.load("pushing", goal_half_size=0.0)
     missing = tmp_path / "none.npz"
     with pytest.raises(MjstampError, match="not found"):
         tasks.load("pushing", skill_bank=str(missing))
@@ -113,6 +115,41 @@ def test_bad_settings_are_one_line_errors(tmp_path):
     junk.write_bytes(b"not a bank")
     with pytest.raises(MjstampError, match="junk.npz"):
         tasks.load("pushing", skill_bank=str(junk))
+
+
+class _EndsAt:
+    """A rollout whose bodies all end at `xy` (and sites where the scene has them)."""
+
+    def __init__(self, scene, xy):
+        self.scene, self.xy = scene, np.asarray(xy, float)
+
+    def body_pos(self, body):
+        xyz = np.concatenate([self.xy, np.zeros((len(self.xy), 1))], axis=1)
+        return jnp.asarray(xyz[:, None, :])
+
+    def site_pos(self, site):
+        pos = self.scene.m.site_pos[site]
+        return jnp.asarray(np.tile(pos, (len(self.xy), 1, 1)))
+
+
+def test_a_smaller_goal_region_is_the_site_and_the_aim_stays_inside_it():
+    small, _ = tasks.load("pushing", goal_half_size=0.01)
+    site = small.scene.site("goal")
+    np.testing.assert_allclose(small.scene.m.site_size[site, :2], [0.01, 0.01])
+    np.testing.assert_allclose(small.scene.m.site_pos[site, :2], [0.5, 0.3])
+    (target,) = [t for t in small.costs if t.name == "target"]
+    # The margin (0.03) is capped at half the half-size: zero within 5 mm of the centre.
+    r = np.asarray(target.residual(_EndsAt(small.scene, [[0.504, 0.3], [0.507, 0.3]])))
+    np.testing.assert_allclose(r[:, 0], [0.0, 0.002], atol=1e-9)
+
+
+def test_the_skill_bank_does_not_depend_on_the_goal_region(task):
+    """Sites do not touch the demonstrations' physics: a moved or shrunk goal reads the same bank."""
+    moved, _ = tasks.load("pushing", max_pushes=2, goal_x=0.4, goal_half_size=0.02)
+    before = moved.scene.m.site_pos.copy()
+    fp = skills.fingerprint(moved.scene, moved.extras["setup"])
+    assert fp == skills.fingerprint(task.scene, task.extras["setup"])
+    np.testing.assert_array_equal(moved.scene.m.site_pos, before)  # the scene is not touched
 
 
 def test_an_explicit_stale_bank_is_refused_not_replaced(task, tmp_path):

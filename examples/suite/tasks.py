@@ -233,13 +233,15 @@ def pachinko() -> Task:
     return task
 
 
-def arm_strike(knots: int = 3) -> Task:
-    """Hinge motors: a two-link arm strikes a ball into one of two goals.
+def arm_strike(knots: int = 3, radius: float = 0.08) -> Task:
+    """Hinge motors: a two-link arm strikes a ball into one of three goals.
 
     θ = `knots` torque knots per motor (shoulder, then elbow; the suite's: 3),
     in N·m within the motors' range, interpolated over the horizon. Task plan =
-    the rails the ball touches and the goal it reaches (east, north or west).
-    `benchmarks/scaling.py`'s arm family turns `knots`.
+    the rails the ball touches and the goal it reaches (east, north or west):
+    the ball's centre comes within `radius` (m; the suite's: 0.08) of the
+    goal's. `benchmarks/scaling.py`'s arm family turns `knots`, its
+    arm_goal family `radius`.
     """
     scene = _scene("arm_strike")
     task = Task("arm_strike", scene, horizon=_steps(scene, 1.5),
@@ -251,7 +253,7 @@ def arm_strike(knots: int = 3) -> Task:
     goals = {"east": "goal_east", "north": "goal_north", "west": "goal_west"}
     task.cost("aim", costs.aim("forearm", "ball"))
     task.cost("goal", costs.reach("ball", list(goals.values())))
-    task.success(costs.reaches("ball", goals, radius=0.08))
+    task.success(costs.reaches("ball", goals, radius=radius))
     task.display(trace=["ball"])
     return task
 

@@ -24,6 +24,7 @@ References:
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import os
@@ -277,12 +278,18 @@ def dmp_config() -> dmp.DMPConfig:
 
 
 def fingerprint(scene, setup: PushSetup) -> str:
-    """Identifies what a fitted bank depends on: this module, the DMP code, the scene, setup."""
+    """Identifies what a fitted bank depends on: this module, the DMP code, the scene (but
+    its sites), setup."""
     h = hashlib.sha256()
     for module in (__file__, dmp.__file__):
         h.update(Path(module).read_bytes())
-    buffer = np.empty(mujoco.mj_sizeModel(scene.m), np.uint8)
-    mujoco.mj_saveModel(scene.m, None, buffer)
+    # Sites (the goal region) do not touch the physics the demonstrations record: a task
+    # that moves or resizes its goal reads the same bank.
+    m = copy.copy(scene.m)
+    m.site_pos[:], m.site_size[:], m.site_quat[:] = 0.0, 0.0, 0.0
+    m.stat.center[:], m.stat.extent = 0.0, 0.0  # the visual extent, sites included
+    buffer = np.empty(mujoco.mj_sizeModel(m), np.uint8)
+    mujoco.mj_saveModel(m, None, buffer)
     h.update(buffer.tobytes())
     h.update(repr(dataclasses.astuple(setup)).encode())
     h.update(repr(dmp_config()).encode())

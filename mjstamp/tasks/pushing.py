@@ -27,7 +27,9 @@ Choices (and why):
 - a cost on touching the block from above (`pushed_from_above`) steers the
   planner away from such drags;
 - the goal loss aims 3 cm inside the 8 cm half-size region, so that a plan the
-  relaxation calls good stays good when replayed with the scene's own solver;
+  relaxation calls good stays good when replayed with the scene's own solver
+  (`goal_margin`; a region shrunk by `goal_half_size` is aimed at no deeper
+  than half-way to its centre);
 - discrete SVGD (eq. 4) on Γ̃ with the target at Γ, then SGD on the goals
   with the sides fixed (App. E); the library's 50 SVGD + 100 SGD iterations
   (Adam 0.03, then 0.02): SVGD spreads the sides and goals and, since its
@@ -70,7 +72,8 @@ def default_config() -> dict:
         "y_max": 0.7,
         "goal_x": 0.5,
         "goal_y": 0.3,
-        "goal_margin": 0.03,
+        "goal_half_size": 0.08,  # the shipped region's (m); the goal is the square ± this
+        "goal_margin": 0.03,  # the loss aims this far inside the region, at most half-way in
         "target_weight": 500.0,
         "subgoal_weight": 50.0,
         "trajectory_weight": 5.0,
@@ -141,14 +144,15 @@ COMMANDS = (Command("skills", "record the pushing demonstrations and fit the DMP
                     _skills_arguments, _skills_command),)
 
 
-def _scene(goal_x: float, goal_y: float) -> Scene:
-    """The shipped pushing scene, its goal region moved to (goal_x, goal_y)."""
+def _scene(goal_x: float, goal_y: float, half_size: float) -> Scene:
+    """The shipped pushing scene, its goal region moved to (goal_x, goal_y), ± half_size."""
     path = package_model_path("pushing.xml")
     spec = mujoco.MjSpec.from_file(str(path))
     site = spec.site("goal")
-    if tuple(site.pos[:2]) == (goal_x, goal_y):
+    if tuple(site.pos[:2]) == (goal_x, goal_y) and tuple(site.size[:2]) == (half_size,) * 2:
         return Scene.shipped("pushing")
     site.pos = [goal_x, goal_y, site.pos[2]]
+    site.size = [half_size, half_size, site.size[2]]
     return Scene(spec.to_xml(), name="pushing")
 
 
@@ -272,7 +276,10 @@ def make(config: dict) -> Task:
     if not np.all(hi > lo):
         raise MjstampError(f"task 'pushing': workspace x in [{lo[0]}, {hi[0]}], y in "
                            f"[{lo[1]}, {hi[1]}] is empty")
-    scene = _scene(float(config["goal_x"]), float(config["goal_y"]))
+    half_size = float(config["goal_half_size"])
+    if not half_size > 0:
+        raise MjstampError(f"task 'pushing': goal_half_size={half_size:g} must be > 0 (m)")
+    scene = _scene(float(config["goal_x"]), float(config["goal_y"]), half_size)
     goal = scene.m.site_pos[scene.site("goal"), :2]
     half = scene.m.site_size[scene.site("goal"), :2]
     if np.any(goal - half < lo) or np.any(goal + half > hi):
@@ -322,7 +329,8 @@ def make(config: dict) -> Task:
         return -manhattan_detour(jnp.reshape(params["goal_xy"], (n, K, 2)), start, goal)
 
     task.controls(controls)
-    task.cost("target", costs.box_target("block", "goal", margin=config["goal_margin"]),
+    margin = min(float(config["goal_margin"]), 0.5 * half_size)  # a small region: aim at its middle
+    task.cost("target", costs.box_target("block", "goal", margin=margin),
               weight=config["target_weight"])
     task.cost("subgoals", subgoals, weight=config["subgoal_weight"])
     task.prior("trajectory", trajectory, weight=config["trajectory_weight"])
