@@ -33,8 +33,9 @@ success while the physics stays the same:
   take 17% of uniform shots.
 
 For each member: d and the share of uniform samples over θ's box that
-succeed in MuJoCo C (seed 0's shots whatever `--seed`: the share is the member's) (`modes.monte_carlo`: the same replay and decode as a
-solve's; `--samples N`, the issue's aim 10⁶), with the task plans those
+succeed in MuJoCo C (`modes.monte_carlo`: the same replay and decode as a
+solve's; `--samples N`, the issue's aim 10⁶; seed 0's shots whatever `--seed`:
+the share is the member's), with the task plans those
 samples met; where none succeeds, `success_share` is the rule-of-three upper
 bound 3/N and `success_share_is_upper_bound` says so. Then each method of
 `METHODS` runs on the member and its anytime record is written: distinct
@@ -248,8 +249,7 @@ def success_share(task, samples: int, *, seed: int = 0) -> dict:
 
 
 def solve_config(family: str, member: str) -> dict | None:
-    """The solve settings a user runs a member at: a registered task's (pushing's, the
-    Jaco's), else the defaults."""
+    """The solve settings a user runs a member at: its registered task's, else the defaults."""
     from mjstamp import tasks
 
     if family == "pushing":

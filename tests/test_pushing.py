@@ -144,7 +144,7 @@ def test_a_smaller_goal_region_is_the_site_and_the_aim_stays_inside_it():
 
 
 def test_the_skill_bank_does_not_depend_on_the_goal_region(task):
-    """Sites do not touch the demonstrations' physics: a moved or shrunk goal reads the same bank."""
+    """Sites do not touch the demonstrations' physics: a moved or shrunk goal, the same bank."""
     moved, _ = tasks.load("pushing", max_pushes=2, goal_x=0.4, goal_half_size=0.02)
     before = moved.scene.m.site_pos.copy()
     fp = skills.fingerprint(moved.scene, moved.extras["setup"])

@@ -104,8 +104,7 @@ def test_member_builds_and_replays_its_known_plan(family, member):
 @pytest.mark.slow
 @pytest.mark.parametrize("family", ["arm", "rarity", "arm_goal", "jaco"])
 def test_doing_nothing_fails_on_every_member(family):
-    """θ = 0 (no torque, a cue ball at rest, the Jaco still) moves nothing: no member may call
-    it a success."""
+    """θ = 0 (no torque, a cue ball at rest, the Jaco still) moves nothing: never a success."""
     for make in scaling.FAMILIES[family].values():
         task = make()
         assert not _replay(task, np.zeros(task.dim)).ok[0], task.name

@@ -278,8 +278,10 @@ def dmp_config() -> dmp.DMPConfig:
 
 
 def fingerprint(scene, setup: PushSetup) -> str:
-    """Identifies what a fitted bank depends on: this module, the DMP code, the scene (but
-    its sites), setup."""
+    """Identifies what a fitted bank depends on: this module, the DMP code, the scene, setup.
+
+    The scene's sites are left out: they do not touch the demonstrations' physics.
+    """
     h = hashlib.sha256()
     for module in (__file__, dmp.__file__):
         h.update(Path(module).read_bytes())
