@@ -332,8 +332,10 @@ class SolveConfig:
         a third of the budget, `seeding.screen_particles`' `until_dry`), then
         SVGD and SGD share what is left but a fifth (kept for the polish, the
         landing and verification) in the ratio of their iteration caps, each
-        phase ending at its deadline. The plans then depend on the machine's
-        speed; None (the default) keeps a seed's plans the same everywhere.
+        phase ending at its deadline (the landing and checks after STAMP
+        are not cut short: the fifth is their estimate, not a limit). The
+        plans then depend on the machine's speed; None (the default) keeps a
+        seed's plans the same everywhere.
       devices: shard the particles' rollouts over this many devices
         (`mjstamp.parallel`): host devices on a CPU (`mjstamp.configure(devices=N)`
         first), local GPUs on a GPU machine; None: every device JAX sees. The

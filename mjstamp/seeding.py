@@ -42,6 +42,8 @@ class Screen:
       groups: groups the particles were drawn from.
       seconds: wall time.
       cost_min, cost_median: of the candidates' finite costs C (None if none).
+      first_seen_s: {task plan: seconds from the screen's start to the end of
+        the chunk that first verified it} (plans stream at these times).
     """
 
     candidates: int
@@ -51,6 +53,7 @@ class Screen:
     seconds: float
     cost_min: float | None = None
     cost_median: float | None = None
+    first_seen_s: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def as_dict(self) -> dict:
         """JSON-ready view."""
@@ -143,6 +146,7 @@ def screen_particles(
         return Seeded(candidates, Screen(total, 0, {}, 0, time.perf_counter() - started), {})
     groups: dict[str, list[tuple[float, int]]] = defaultdict(list)
     successes: dict[str, int] = defaultdict(int)
+    first_seen: dict[str, float] = {}
     states: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     kept: dict[int, np.ndarray] = {}
     costs: list[np.ndarray] = []
@@ -162,6 +166,9 @@ def screen_particles(
             kept[start + j] = part[j]
             if decoded.ok[j]:
                 successes[str(decoded.plan[j])] += 1
+        chunk_s = round(time.perf_counter() - started, 3)
+        for plan in successes:
+            first_seen.setdefault(plan, chunk_s)
         for members in groups.values():
             members.sort()
             for _, i in members[cap:]:
@@ -188,6 +195,7 @@ def screen_particles(
         groups=len(groups), seconds=time.perf_counter() - started,
         cost_min=float(costs.min()) if costs.size else None,
         cost_median=float(np.median(costs)) if costs.size else None,
+        first_seen_s=first_seen,
     )
     found = {k[len("ok:"):]: np.stack([kept[i] for _, i in groups[k]])
              for k in order if k.startswith("ok:")}

@@ -328,18 +328,20 @@ BUDGET_RESERVE = 0.2
 """With `SolveConfig.budget`: the share kept after STAMP for the polish, landing and checks."""
 
 
-def _deadlines(cfg: SolveConfig, started: float) -> tuple[float | None, float | None]:
+def _deadlines(cfg: SolveConfig, stamp: svgd.StampConfig,
+               started: float) -> tuple[float | None, float | None]:
     """(SVGD's, SGD's) deadlines of a budgeted solve; (None, None) without a budget.
 
     What is left of the budget but its reserve, split in the ratio of the
-    phases' iteration caps.
+    phases' iteration caps as the run applies them (`stamp`: `_stamp_config`'s,
+    SGD's lowered where the landing refines).
     """
     if cfg.budget is None:
         return None, None
     now = time.perf_counter()
     left = max(0.0, started + cfg.budget * (1 - BUDGET_RESERVE) - now)
-    caps = cfg.stamp.svgd_max_iters + cfg.stamp.sgd_max_iters
-    share = cfg.stamp.svgd_max_iters / caps if caps else 1.0
+    caps = stamp.svgd_max_iters + stamp.sgd_max_iters
+    share = stamp.svgd_max_iters / caps if caps else 1.0
     return now + left * share, now + left
 
 
@@ -481,21 +483,43 @@ def _polish(problem: Problem, cfg: SolveConfig, theta: np.ndarray, say,
     return result
 
 
+def _take_polished(theta: np.ndarray, polished: svgd.PolishResult, evaluate, found: Found):
+    """(θ, its `Outcome`, the unpolished (θ, `Outcome`), rows given back): the polish's θ.
+
+    A particle verified before the polish keeps its task plan: where the
+    polish moved it out of it (or to a failure in C) it gets its unpolished θ
+    back, so the polish deepens a plan and never swaps it. The plans verified
+    before it are streamed first (`found`).
+    """
+    before = evaluate(theta)
+    found.add(before.verified.plan[before.good], theta[before.good], "STAMP")
+    new = np.array(polished.particles, np.float64)
+    changed = np.flatnonzero(before.good & np.any(new != theta, axis=1))
+    source = np.full(len(theta), "final", dtype=object)
+    kept, _, outcome = _take_or_give_back(theta, source, new, source.copy(), changed, evaluate,
+                                          plan=before.verified.plan)
+    given_back = int(np.any(kept != np.asarray(polished.particles, np.float64), axis=1).sum())
+    found.add(outcome.verified.plan[outcome.good], kept[outcome.good], "polished")
+    return kept, outcome, (theta, before), given_back
+
+
 def _polish_report(polished: svgd.PolishResult | None, landing: dict | None,
-                   early: dict | None, outcome: Outcome, source: np.ndarray) -> dict | None:
+                   early: dict | None, outcome: Outcome, source: np.ndarray,
+                   given_back: int = 0) -> dict | None:
     """What the polish and the landings did (None: neither ran).
 
     {"gradient": the polish in the gradient model (`PolishResult.as_dict`, with
-    `verified`: its particles that end verified as it left them, and
+    `verified`: its particles that end verified as it left them,
     `verified_landed`: those of them it landed within their goals'
-    tolerance), "landing": the landing in C after it (`_land`), "early": the
-    landing of the screen's candidates (`_land_early`)}.
+    tolerance, and `given_back`: verified particles it moved out of their task
+    plan, which got their θ back), "landing": the landing in C after it
+    (`_land`), "early": the landing of the screen's candidates (`_land_early`)}.
     """
     if polished is None and landing is None and early is None:
         return None
     out: dict = {"gradient": None, "landing": landing, "early": early}
     if polished is not None:
-        grad = polished.as_dict()
+        grad = {**polished.as_dict(), "given_back": given_back}
         kept = source == "final"
         grad["verified"] = int((outcome.good & kept).sum())
         grad["verified_landed"] = int((outcome.good & kept & polished.landed).sum())
@@ -560,20 +584,32 @@ def _land_early(problem: Problem, cfg: SolveConfig, theta0: np.ndarray, replay0,
                          depth=cfg.landing.depth, radius=cfg.landing.radius, replay=replay0,
                          until="success")
     report = _landing_dict(result, len(theta0))
-    found = result.theta[result.ok]
-    plans = verify.decode(problem, verify.simulate_c(problem, found), found).plan if len(found) \
-        else np.zeros(0, dtype=object)
-    landed = result.landed[result.ok]
+    # N.B. only what the landing moved: a candidate that succeeded as screened is in its pool.
+    new = result.ok & np.any(result.theta != theta0, axis=1)
+    found, plans, landed = result.theta[new], result.plan[new], result.landed[new]
     for plan in sorted(set(plans)):
         mine = np.flatnonzero(plans == plan)
         mine = mine[np.argsort(~landed[mine], kind="stable")]  # landed first
         pool = np.asarray(successes.get(plan, np.zeros((0, theta0.shape[1]))), np.float64)
         successes[plan] = np.concatenate([found[mine], pool.reshape(-1, theta0.shape[1])])
-    report["task_plans"] = len(set(plans))
+    report["task_plans"] = len(set(result.plan[result.ok]))
     say(f"landing: {report['ok']} of {len(theta0)} candidates succeed in C "
         f"({report['task_plans']} task plans), {report['landed']} within their goals' "
         f"tolerance ({result.seconds:.1f} s)")
     return report
+
+
+def _settings(cfg: SolveConfig) -> dict[str, Any]:
+    """The solve's settings as checkpoints hash them and results record them.
+
+    The flat view of before the nesting (`SolveConfig.flat_dict`) and the
+    groups that came after it by their dotted names ("polish.max_iters",
+    "landing.early", ...): the early landing changes the screen's pools, which
+    STAMP's rescues draw from, so a resume at other landing settings is refused.
+    """
+    groups = {f"{name}.{k}": v for name in ("polish", "landing")
+              for k, v in dataclasses.asdict(getattr(cfg, name)).items()}
+    return {**cfg.flat_dict(), **groups}
 
 
 def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, resume: bool,
@@ -589,7 +625,7 @@ def _checkpointing(problem: Problem, cfg: SolveConfig, seed: int, directory, res
     # N.B. the device count resolved: a resume on other devices would shard otherwise.
     # N.B. the SGD cap as the run applies it: the landing may lower it (`_stamp_config`).
     settings = {"task": dict(problem.settings), "solve": {
-        **cfg.flat_dict(), "devices": devices,
+        **_settings(cfg), "devices": devices,
         "sgd_max_iters": _stamp_config(cfg, problem, seed).sgd_max_iters}}
     meta = {"task": problem.name, "version": __version__,
             "fingerprint": checkpoint_mod.fingerprint(problem.fingerprint, settings, seed),
@@ -668,7 +704,10 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     found = Found(say, clock["start"])
     theta0, screen, successes, replay0 = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
-    found.add_pools(successes, "screen")
+    if screen is not None:  # each at the end of the chunk that verified it
+        began = time.perf_counter() - screen.seconds - clock["start"]
+        found.add_pools(successes, "screen",
+                        {p: began + t for p, t in screen.first_seen_s.items()})
     clock["screen"] = time.perf_counter()
     early = _land_early(problem, cfg, theta0_np, replay0, screen, successes, say)
     found.add_pools(successes, "landed early")
@@ -687,7 +726,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
             stamp = _run_stamp(problem, cfg, theta0, seed, say, devices=devices,
                                checkpointer=checkpointer, resume=snap, successes=successes,
-                               deadlines=_deadlines(cfg, clock["start"]))
+                               deadlines=_deadlines(cfg, _stamp_config(cfg, problem, seed),
+                                                    clock["start"]))
     except checkpoint_mod.Interrupted:
         found.save(checkpoint_dir)  # N.B. no plan verified is lost with the interrupted solve
         raise
@@ -698,13 +738,13 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     clock["polish"] = time.perf_counter()
     say("decoding and verifying in MuJoCo C")
     visited = {}
-    if polished is not None:
-        visited["unpolished"] = (theta, evaluate(theta))
-        theta = polished.particles
-    outcome = evaluate(theta)
     source = np.full(len(theta), "final", dtype=object)
-    found.add(outcome.verified.plan[outcome.good], theta[outcome.good],
-              "STAMP" if polished is None else "polished")
+    if polished is None:
+        outcome = evaluate(theta)
+        found.add(outcome.verified.plan[outcome.good], theta[outcome.good], "STAMP")
+    else:
+        theta, outcome, visited["unpolished"], given_back = _take_polished(theta, polished,
+                                                                           evaluate, found)
     theta, source, outcome, landing = _land(problem, cfg, theta, source, outcome, evaluate, say)
     found.add(outcome.verified.plan[outcome.good], theta[outcome.good], "landed")
     clock["landing"] = time.perf_counter()
@@ -738,7 +778,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
                                   initial_faithful=initial_faithful))
     return SolveResult(
         problem=problem, config={"seed": seed, "task": dict(problem.settings),
-                                 "solve": cfg.flat_dict()},
+                                 "solve": _settings(cfg)},
         theta=theta, svgd_theta=svgd_theta,
         initial_theta=theta0_np, cost=outcome.cost, returned=returned, repaired=repaired,
         predicted=outcome.predicted, verified=outcome.verified, replay=outcome.replay,
@@ -749,7 +789,8 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         screen=None if screen is None else screen.as_dict(), source=source,
         rescue=_rescue_report(problem, cfg, stamp, visited["initial"][1], outcome),
         devices=devices, loss=loss, robustness=robust,
-        polish=_polish_report(polished, landing, early, outcome, source),
+        polish=_polish_report(polished, landing, early, outcome, source,
+                              given_back if polished is not None else 0),
         found=found.as_dict(),
     )
 
@@ -767,23 +808,29 @@ class Found:
         self.say, self.started = say, started
         self.plans: dict[str, dict] = {}
 
-    def add(self, plans, theta, source: str) -> None:
-        """Records the task plans of verified plans (plans (m,) str, θ (m, d)) not seen yet."""
+    def add(self, plans, theta, source: str, seconds: dict[str, float] | None = None) -> None:
+        """Records the task plans of verified plans (plans (m,) str, θ (m, d)) not seen yet.
+
+        `seconds`: {task plan: when it was verified, since the solve started},
+        where that was before now (the screen's chunks).
+        """
         now = time.perf_counter() - self.started
         for plan, th in zip(plans, np.asarray(theta, np.float64), strict=True):
             plan = str(plan)
             if plan in self.plans:
                 continue
-            self.plans[plan] = {"seconds": round(now, 3), "source": source,
+            at = min(now, (seconds or {}).get(plan, now))
+            self.plans[plan] = {"seconds": round(at, 3), "source": source,
                                 "theta": [float(x) for x in th]}
-            self.say(f"verified task plan {plan} at {now:.1f} s ({source}); "
+            self.say(f"verified task plan {plan} at {at:.1f} s ({source}); "
                      f"{len(self.plans)} so far")
 
-    def add_pools(self, pools: dict[str, np.ndarray], source: str) -> None:
+    def add_pools(self, pools: dict[str, np.ndarray], source: str,
+                  seconds: dict[str, float] | None = None) -> None:
         """Records each task plan of {task plan: (m, d) verified plans, best first}."""
         for plan, pool in sorted(pools.items()):
             if len(pool):
-                self.add([plan], np.asarray(pool)[:1], source)
+                self.add([plan], np.asarray(pool)[:1], source, seconds)
 
     def as_dict(self) -> dict[str, dict]:
         """{task plan: {"seconds", "source", "theta"}}, first found first."""

@@ -81,7 +81,8 @@ def test_polish_leaves_a_nonfinite_particle_alone():
     ("polish.max_iters", -1, "polish.max_iters=-1 must be an integer >= 0 or None"),
     ("landing.sgd_max_iters", -2, "landing.sgd_max_iters=-2 must be an integer >= 0 or None"),
     ("polish.patience", True, "polish.patience=True must be an integer >= 0"),
-    ("polish.depth", 0, r"polish.depth=0 must be a number in \(0, 1\]"),
+    ("polish.depth", 0, r"polish.depth=0 must be a finite number in \(0, 1\]"),
+    ("polish.mu_max", float("inf"), r"polish.mu_max=inf must be a finite number in \(0, inf\)"),
     ("polish.mu0", 1e9, "polish.mu0=1000000000.0 must be below polish.mu_max"),
     ("landing.iterations", 1.5, "landing.iterations=1.5 must be an integer >= 0"),
     ("landing.radius", 2, r"landing.radius=2 must be a number in \(0, 1\]"),
@@ -128,6 +129,19 @@ def test_residual_declarations_are_checked(tiny_task):
         task.residuals("goal", lambda r: r.body_pos("puck")[:, -1, :2])
     assert costs.box_target("puck", "goal").residuals is not None
     assert costs.aim("puck", "wall").residuals is None  # a gap, not a squared distance
+    with pytest.raises(MjstampError, match="'aim': this cost of mjstamp.tasks.costs has no "
+                                           "residuals"):
+        task.residuals("aim", costs.aim("puck", "wall"))
+    with pytest.raises(MjstampError, match="cost 'gap': tolerance= is for a cost with "
+                                           "residuals"):
+        task.cost("gap", costs.aim("puck", "wall"), tolerance=0.1)
+    # A cost of `costs` given to residuals brings its own; one of the wrong shape, one line.
+    task.residuals("final", costs.reach("puck", ["goal"], when="final"), tolerance=0.02)
+    task.residuals("flat", lambda r: r.body_pos("puck")[:, -1, 0])
+    problem = task.build()
+    assert {t.name: t.tolerance for t in problem.residual_terms}["final"] == 0.02
+    with pytest.raises(MjstampError, match="residuals 'flat' must return an \\(n, m\\) array"):
+        problem.evaluate(jnp.zeros((2, 2)), hard=True)
 
 
 def test_landing_in_c_lands_a_near_miss_that_nothing_else_moves(tiny_task):
@@ -166,6 +180,35 @@ def test_solve_polishes_and_lands_and_reports_it(tiny_task):
     times = [f["seconds"] for f in on.found.values()]
     assert times == sorted(times) and summary["first_plan_s"] == times[0]
     assert times[0] <= on.timings["screen_s"] + on.timings["early_s"] + 1.0
+
+
+def test_the_polish_never_swaps_a_verified_plan_for_another():
+    """The polish deepens a verified plan and never swaps it.
+
+    A verified particle it moves out of its task plan (or to a failure) gets its θ back; one
+    that stays in it, or failed before, keeps the polish's; every plan is streamed.
+    """
+    from types import SimpleNamespace
+
+    from mjstamp import solve as solve_mod
+
+    def evaluate(theta, replay=None):  # succeeds where x > 0; task plan "a" where y > 0
+        plan = np.where(theta[:, 1] > 0, "a", "b").astype(object)
+        return SimpleNamespace(good=theta[:, 0] > 0, verified=SimpleNamespace(plan=plan))
+
+    theta = np.array([[1.0, 1.0], [1.0, 1.0], [-1.0, -1.0], [1.0, 1.0]])
+    polished = SimpleNamespace(particles=np.array(
+        [[1.0, -1.0],   # verified "a" moved to "b": back
+         [2.0, 2.0],    # verified "a", deeper in it: kept
+         [1.0, -1.0],   # failed before, now "b": kept
+         [-1.0, 1.0]]))  # verified "a" moved to a failure: back
+    said = []
+    found = solve_mod.Found(said.append, 0.0)
+    kept, outcome, (before_theta, _), given_back = solve_mod._take_polished(
+        theta, polished, evaluate, found)
+    np.testing.assert_array_equal(kept, [[1, 1], [2, 2], [1, -1], [1, 1]])
+    assert given_back == 2 and outcome.good.all() and before_theta is theta
+    assert {p: f["source"] for p, f in found.plans.items()} == {"a": "STAMP", "b": "polished"}
 
 
 def test_polish_runs_by_default_on_an_accelerator_only(monkeypatch):
@@ -225,15 +268,18 @@ def test_a_budget_splits_the_solve_and_screens_while_it_yields(tiny_task):
 
     with pytest.raises(MjstampError, match="budget=0 must be a number of seconds > 0 or None"):
         SolveConfig(budget=0)
-    assert solve_mod._deadlines(SolveConfig(), time.perf_counter()) == (None, None)
-    cfg = SolveConfig.from_dict({"budget": 100})
-    start = time.perf_counter()
-    svgd_end, sgd_end = solve_mod._deadlines(cfg, start)
-    assert start < svgd_end < sgd_end <= start + 80 + 1e-6  # a fifth kept for the checks
-    share = cfg.stamp.svgd_max_iters / (cfg.stamp.svgd_max_iters + cfg.stamp.sgd_max_iters)
-    assert (svgd_end - start) / (sgd_end - start) == pytest.approx(share, abs=0.01)
-    # The screen stops once its chunks find no new task plan, long before its seconds.
     problem = tiny_task().build()
+    plain = SolveConfig()
+    assert solve_mod._deadlines(plain, plain.stamp, time.perf_counter()) == (None, None)
+    cfg = SolveConfig.from_dict({"budget": 100})
+    # The split follows the caps the run applies: SGD's is the landing's 20 where it lands.
+    stamp = solve_mod._stamp_config(cfg, problem, 0)
+    assert (stamp.svgd_max_iters, stamp.sgd_max_iters) == (50, 20)
+    start = time.perf_counter()
+    svgd_end, sgd_end = solve_mod._deadlines(cfg, stamp, start)
+    assert start < svgd_end < sgd_end <= start + 80 + 1e-6  # a fifth kept for the checks
+    assert (svgd_end - start) / (sgd_end - start) == pytest.approx(50 / 70, abs=0.01)
+    # The screen stops once its chunks find no new task plan, long before its seconds.
     started = time.perf_counter()
     seeded = seeding.screen_particles(problem, jax.random.key(0), 8, screen=4, chunk=64,
                                       seconds=60, until_dry=2)

@@ -1,6 +1,7 @@
 """Pushing: demonstrations, DMP skills in the scene, references, decoding, bad input."""
 
 import json
+from types import SimpleNamespace
 
 import jax.numpy as jnp
 import numpy as np
@@ -150,6 +151,9 @@ def test_the_skill_bank_does_not_depend_on_the_goal_region(task):
     fp = skills.fingerprint(moved.scene, moved.extras["setup"])
     assert fp == skills.fingerprint(task.scene, task.extras["setup"])
     np.testing.assert_array_equal(moved.scene.m.site_pos, before)  # the scene is not touched
+    heavier = moved.scene.m.__copy__()
+    heavier.body_mass[moved.scene.body("block")] *= 2
+    assert skills.fingerprint(SimpleNamespace(m=heavier), moved.extras["setup"]) != fp
 
 
 def test_an_explicit_stale_bank_is_refused_not_replaced(task, tmp_path):

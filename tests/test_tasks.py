@@ -150,8 +150,7 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
     assert sorted(labels) == ["final", "stamp-sgd-update", "stamp-svgd-evaluate",
                               "stamp-svgd-update"]
     summary = result.summary()
-    assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)",
-                                                    "jit(polish-step)"}
+    assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)"}
     assert summary["particles"] == 8 and summary["task"] == "tiny"
     # β "auto" from the screen's costs, and the log posterior STAMP sampled used it.
     assert summary["cost_scale"] == seeding.auto_cost_scale(seeding.Screen(**summary["screen"]))

@@ -26,7 +26,8 @@ def add_parser(subparsers):
     solve.add_argument("--particles", type=int, default=None, help="particles (plans) to move")
     solve.add_argument("--seed", type=parse_seed, default=0)
     solve.add_argument("--budget", type=parse_seconds("--budget"), metavar="S", default=None,
-                       help="wall time of the solve, as a portfolio: the C screen runs on "
+                       help="about this wall time for the solve, as a portfolio: the C screen "
+                       "runs on "
                        "while it finds new task plans, STAMP's phases end at their share "
                        "(plans then depend on the machine's speed)")
     solve.add_argument("--out", metavar="DIR", help="write plans.json and .npz files here "

@@ -280,16 +280,18 @@ def dmp_config() -> dmp.DMPConfig:
 def fingerprint(scene, setup: PushSetup) -> str:
     """Identifies what a fitted bank depends on: this module, the DMP code, the scene, setup.
 
-    The scene's sites are left out: they do not touch the demonstrations' physics.
+    The goal region's site is left out (a task moves and resizes it; it holds no sensor,
+    tendon or actuator), and so is the model's visual extent, which sites count in.
     """
     h = hashlib.sha256()
     for module in (__file__, dmp.__file__):
         h.update(Path(module).read_bytes())
-    # Sites (the goal region) do not touch the physics the demonstrations record: a task
-    # that moves or resizes its goal reads the same bank.
+    # N.B. a task that moves or resizes its goal region reads the same bank.
     m = copy.copy(scene.m)
-    m.site_pos[:], m.site_size[:], m.site_quat[:] = 0.0, 0.0, 0.0
-    m.stat.center[:], m.stat.extent = 0.0, 0.0  # the visual extent, sites included
+    goal = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "goal")
+    if goal >= 0:
+        m.site_pos[goal], m.site_size[goal] = 0.0, 0.0
+    m.stat.center[:], m.stat.extent = 0.0, 0.0
     buffer = np.empty(mujoco.mj_sizeModel(m), np.uint8)
     mujoco.mj_saveModel(m, None, buffer)
     h.update(buffer.tobytes())

@@ -102,8 +102,8 @@ class PolishConfig:
             value = getattr(self, name)
             if (isinstance(value, bool) or not isinstance(value, (int, float))
                     or not (low < value <= high) or not np.isfinite(value)):
-                raise MjstampError(f"polish.{name}={value!r} must be a number in "
-                                   f"({low:g}, {high:g}]")
+                bounds = f"({low:g}, {high:g}]" if np.isfinite(high) else f"({low:g}, inf)"
+                raise MjstampError(f"polish.{name}={value!r} must be a finite number in {bounds}")
         if self.mu0 >= self.mu_max:
             raise MjstampError(f"polish.mu0={self.mu0!r} must be below polish.mu_max="
                                f"{self.mu_max!r}")

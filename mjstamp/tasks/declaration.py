@@ -98,10 +98,14 @@ class SumOfSquares:
     """The cost Σ r² of a residual function r(rollout) -> (n, m) (`Task.residuals`)."""
 
     residual: Callable
+    where: str = "residuals"
 
     def __call__(self, rollout):
-        """(n,) Σ_j r_j²."""
+        """(n,) Σ_j r_j²; a residual of another shape is one line naming `where`."""
         r = self.residual(rollout)
+        if getattr(r, "ndim", None) != 2:
+            raise MjstampError(f"{self.where} must return an (n, m) array (m residuals per "
+                               f"particle), got shape {getattr(r, 'shape', type(r).__name__)}")
         return (r**2).sum(axis=-1)
 
 

@@ -327,6 +327,10 @@ class Task:
             if tolerance is None:
                 tolerance = fn.tolerance
             self._goals[name] = fn.goal
+        if tolerance is not None and residual is None:
+            raise MjstampError(f"task {self.name!r}: cost {name!r}: tolerance= is for a cost "
+                               "with residuals (costs.reach, costs.box_target, or "
+                               "task.residuals)")
         self._add_term(self.costs, name, self._bind(fn, f"cost {name!r}"), weight, "cost",
                        residual=residual, tolerance=tolerance)
 
@@ -344,11 +348,19 @@ class Task:
           tolerance: ‖r‖ within which the goal is met (its radius), where the
             polish may stop; None: it stops when its steps stall.
         """
+        if isinstance(fn, costs.Bound):  # costs.reach, costs.box_target: their own residuals
+            if fn.residuals is None:
+                raise MjstampError(f"task {self.name!r}: residuals {name!r}: this cost of "
+                                   "mjstamp.tasks.costs has no residuals; declare it with "
+                                   "task.cost")
+            self.cost(name, fn, weight, tolerance=tolerance)
+            return
         fn = self._bind(fn, f"residuals {name!r}")
         if not callable(fn):
             raise MjstampError(f"task {self.name!r}: residuals {name!r} must be callable")
-        self._add_term(self.costs, name, SumOfSquares(fn), weight, "residuals", residual=fn,
-                       tolerance=tolerance)
+        where = f"task {self.name!r}: residuals {name!r}"
+        self._add_term(self.costs, name, SumOfSquares(fn, where), weight, "residuals",
+                       residual=fn, tolerance=tolerance)
 
     def prior(self, name: str, fn: Callable[[dict], jax.Array], weight: float = 1.0):
         """Adds weight · fn(params) to log p(θ) (eq. 7); fn({name: (n, size)}) -> (n,)."""

@@ -50,6 +50,7 @@ class Landing:
       iterations: (n,) iterations each particle ran.
       rollouts: MuJoCo C rollouts spent.
       seconds: wall time.
+      plan: (n,) the task plan `theta` verifies in C ("" where not `ok`).
     """
 
     theta: np.ndarray
@@ -59,6 +60,7 @@ class Landing:
     iterations: np.ndarray
     rollouts: int
     seconds: float
+    plan: np.ndarray | None = None
 
 
 def _evaluate(problem, theta, tolerances, depth, replay: Replay | None = None):
@@ -118,6 +120,7 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
     centre, rho = theta.copy(), np.full(n, float(radius))
     best, best_p = theta.copy(), np.where(ok, p, np.inf)
     best_ok, best_landed = ok.copy(), landed.copy()
+    best_plan = np.where(ok, plan, "").astype(object)
     enough = best_landed if until == "landed" else best_ok
     done = enough | ~np.isfinite(p)
     its = np.zeros(n, int)
@@ -138,6 +141,7 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         idx = rows[better]
         best[idx], best_p[idx] = pts[take, j][better], p_[take, j][better]
         best_ok[idx], best_landed[idx] = True, landed_[take, j][better]
+        best_plan[idx] = plan_[take, j][better]
 
     for _ in range(iterations):
         rows = np.flatnonzero(~done)
@@ -184,7 +188,9 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         actual = p[rows] - tp
         ratio = np.where(predicted > 0, actual / np.where(predicted > 0, predicted, 1.0), -1.0)
         full = size >= 0.9 * rho[rows]
-        rho[rows] = np.where(ratio > 0.75, np.where(full, 2 * rho[rows], rho[rows]),
+        # N.B. at most a whole box width: a step past that leaves every box anyway.
+        rho[rows] = np.where(ratio > 0.75, np.where(full, np.minimum(2 * rho[rows], 1.0),
+                                                    rho[rows]),
                              np.where(ratio < 0.25, rho[rows] / 4, rho[rows]))
         # The centre moves to the best of itself, its stencil and the trial.
         pool_p = np.concatenate([p[rows, None], sp, tp[:, None]], axis=1)
@@ -197,4 +203,4 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         done[rows] = enough[rows] | (rho[rows] < min_radius)
     out = np.where(best_ok[:, None], best, centre)
     return Landing(out, best_ok, best_landed, np.where(best_ok, best_p, p), its, rollouts,
-                   time.perf_counter() - started)
+                   time.perf_counter() - started, best_plan)

@@ -51,6 +51,7 @@ def stable_plans(out: Path) -> dict:
     for section in ("screen", "robustness"):
         if data.get(section):
             data[section].pop("seconds", None)
+            data[section].pop("first_seen_s", None)
     for part in (data.get("polish") or {}).values():
         if part:
             part.pop("seconds", None)
