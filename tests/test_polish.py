@@ -159,6 +159,34 @@ def test_landing_in_c_lands_a_near_miss_that_nothing_else_moves(tiny_task):
     assert landed.iterations[0] <= 10
 
 
+def test_the_landing_deepens_a_task_plan_and_never_swaps_it(monkeypatch):
+    """A landing deepens a verified task plan, never swaps it.
+
+    1-D: r = θ, success for |θ| < 1, task plan "A" above 0.05 and "B" below it. A particle
+    verified in "A" descends towards 0 but keeps its best point in "A"; one that failed
+    takes the best success it meets, whatever its plan.
+    """
+    from types import SimpleNamespace
+
+    from mjstamp.verify import landing
+
+    def evaluate(problem, theta, tolerances, depth, replay=None):
+        x = theta[:, 0]
+        ok = np.abs(x) < 1.0
+        plan = np.where(x > 0.05, "A", "B").astype(object)
+        return x**2, x[:, None], ok, ok & (np.abs(x) <= depth * 0.01), plan
+
+    problem = SimpleNamespace(residual_tolerances=lambda: [0.01])
+    monkeypatch.setattr(landing, "as_problem", lambda task: problem)
+    monkeypatch.setattr(landing, "_evaluate", evaluate)
+    monkeypatch.setattr(landing, "_box", lambda p: (np.array([-2.0]), np.array([2.0]),
+                                                   np.array([True]), np.array([True])))
+    result = landing.land(problem, np.array([[0.5], [1.5]]), iterations=30, radius=0.05)
+    assert result.plan.tolist() == ["A", "B"] and result.ok.all()
+    assert 0.05 < result.theta[0, 0] < 0.5  # deeper in "A", not crossed into "B"
+    assert abs(result.theta[1, 0]) < 0.05 and result.landed[1]
+
+
 def test_solve_polishes_and_lands_and_reports_it(tiny_task):
     """A tiny solve with a 5 mm goal: the polish and the landings land what STAMP leaves near."""
     task = tiny_task(radius=0.005)
