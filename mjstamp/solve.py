@@ -493,12 +493,12 @@ def _take_polished(theta: np.ndarray, polished: svgd.PolishResult, evaluate, fou
     """
     before = evaluate(theta)
     found.add(before.verified.plan[before.good], theta[before.good], "STAMP")
-    new = np.array(polished.particles, np.float64)
-    changed = np.flatnonzero(before.good & np.any(new != theta, axis=1))
+    proposed = np.array(polished.particles, np.float64)
+    changed = np.flatnonzero(before.good & np.any(proposed != theta, axis=1))
     source = np.full(len(theta), "final", dtype=object)
-    kept, _, outcome = _take_or_give_back(theta, source, new, source.copy(), changed, evaluate,
-                                          plan=before.verified.plan)
-    given_back = int(np.any(kept != np.asarray(polished.particles, np.float64), axis=1).sum())
+    kept, _, outcome = _take_or_give_back(theta, source, proposed.copy(), source.copy(), changed,
+                                          evaluate, plan=before.verified.plan)
+    given_back = int(np.any(kept != proposed, axis=1).sum())
     found.add(outcome.verified.plan[outcome.good], kept[outcome.good], "polished")
     return kept, outcome, (theta, before), given_back
 
@@ -737,7 +737,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     polished = _polish(problem, cfg, theta, say, devices)
     clock["polish"] = time.perf_counter()
     say("decoding and verifying in MuJoCo C")
-    visited = {}
+    visited, given_back = {}, 0
     source = np.full(len(theta), "final", dtype=object)
     if polished is None:
         outcome = evaluate(theta)
@@ -789,8 +789,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         screen=None if screen is None else screen.as_dict(), source=source,
         rescue=_rescue_report(problem, cfg, stamp, visited["initial"][1], outcome),
         devices=devices, loss=loss, robustness=robust,
-        polish=_polish_report(polished, landing, early, outcome, source,
-                              given_back if polished is not None else 0),
+        polish=_polish_report(polished, landing, early, outcome, source, given_back),
         found=found.as_dict(),
     )
 
