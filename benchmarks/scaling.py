@@ -182,22 +182,12 @@ def jaco_spot(radius: float):
     """
     import jax.numpy as jnp
 
-    from mjstamp.tasks import Task, costs, jaco
+    from mjstamp.tasks import Task, jaco
 
     config = jaco.default_config()
-    sc = jaco.scene(config)
-    task = Task(f"jaco_spot_r{radius:g}", sc, horizon=int(config["horizon"]),
+    task = Task(f"jaco_spot_r{radius:g}", jaco.scene(config), horizon=int(config["horizon"]),
                 description=f"push the brick to end within {radius:g} m of {JACO_SPOT}")
-    limits = np.array([sc.m.actuator_ctrlrange[sc.actuator(f"jaco_arm/{j}")]
-                       for j in jaco.DRIVEN])
-    limits[1:] = np.clip(limits[1:], -config["pitch_speed"], config["pitch_speed"])
-    knots = int(config["knots"])
-    task.box("velocity", low=np.repeat(limits[:, 0], knots), high=np.repeat(limits[:, 1], knots))
-    task.controls(jaco.velocity_knots("velocity", sc, knots, task.horizon))
-    task.contact("hand_brick", jaco.FIST, jaco.BRICK)
-    task.contact("brick_post", jaco.BRICK, "post")
-    brick = jaco.brick_body(sc)
-    task.cost("aim", costs.aim(jaco.FIST, jaco.BRICK), weight=config["aim_weight"])
+    brick = jaco.declare_arm(task, config)
     task.residuals("spot", lambda r: r.body_pos(brick)[:, -1, :2] - jnp.asarray(JACO_SPOT),
                    weight=config["goal_weight"], tolerance=radius)
 

@@ -245,18 +245,16 @@ def velocity_knots(name: str, scene: Scene, knots: int, horizon: int):
 
 
 
-@register("jaco", default_config,
-          "the Kinova Jaco arm (dm_control) pushes a brick round a post into a goal",
-          solve_config=solve_config)
-def make(config: dict) -> Task:
-    """Builds the Jaco task from its settings (see `default_config`)."""
+def declare_arm(task: Task, config: dict) -> str:
+    """Declares the Jaco task's θ, controls, contact symbols and aim; the brick's body name.
+
+    What a task of another goal on the same scene (`task.scene`, `scene(config)`)
+    shares with this one: `benchmarks/scaling.py`'s jaco family.
+    """
     knots = int(config["knots"])
     if knots < 2:
-        raise MjstampError(f"task 'jaco': knots={knots} must be >= 2")
-    sc = scene(config)
-    task = Task("jaco", sc, horizon=int(config["horizon"]), settings=config,
-                description="push the brick into a goal region; task plan = whether the "
-                "brick touched the post, and the goal")
+        raise MjstampError(f"task {task.name!r}: knots={knots} must be >= 2")
+    sc = task.scene
     limits = np.array([sc.m.actuator_ctrlrange[sc.actuator(f"jaco_arm/{j}")] for j in DRIVEN])
     pitch = float(config["pitch_speed"])
     limits[1:] = np.clip(limits[1:], -pitch, pitch)
@@ -265,8 +263,22 @@ def make(config: dict) -> Task:
     task.controls(velocity_knots("velocity", sc, knots, task.horizon))
     task.contact("hand_brick", FIST, BRICK)
     task.contact("brick_post", BRICK, "post")
-    brick = brick_body(sc)
     task.cost("aim", costs.aim(FIST, BRICK), weight=config["aim_weight"])
+    return brick_body(sc)
+
+
+@register("jaco", default_config,
+          "the Kinova Jaco arm (dm_control) pushes a brick round a post into a goal",
+          solve_config=solve_config)
+def make(config: dict) -> Task:
+    """Builds the Jaco task from its settings (see `default_config`)."""
+    if int(config["knots"]) < 2:  # N.B. before the scene is composed
+        raise MjstampError(f"task 'jaco': knots={int(config['knots'])} must be >= 2")
+    sc = scene(config)
+    task = Task("jaco", sc, horizon=int(config["horizon"]), settings=config,
+                description="push the brick into a goal region; task plan = whether the "
+                "brick touched the post, and the goal")
+    brick = declare_arm(task, config)
     task.cost("goal", costs.reach(brick, list(GOALS.values()), when="final"),
               weight=config["goal_weight"])
     task.success(costs.ends_in_any(brick, GOALS))
