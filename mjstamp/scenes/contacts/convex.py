@@ -182,7 +182,7 @@ def pair_contacts(k1: Kind, k2: Kind, info1, info2, margin, *, ncon: int,
     o2 = Obj(info2.pos, info2.mat.reshape(3, 3), info2.size, margin)
     maxc = max_contacts(k1.gtype, k2.gtype, disableflags)
     with gjk.exact(info1.pos):
-        r = gjk.ccd(k1, k2, o1, o2, max_contacts=maxc)
+        r = gjk.ccd_converged(k1, k2, o1, o2, max_contacts=maxc)
         n = r.dist.shape[0]
         pos = mul(r.x1 + r.x2, 0.5)
         nrm, _ = gjk.normalize3(r.x1 - r.x2)

@@ -90,6 +90,39 @@ def mul(a, b):
     return p if one is None else p * one
 
 
+@contextlib.contextmanager
+def until_converged():
+    """Within this context, GJK's, EPA's and the horizon's loops stop when they are done.
+
+    Their fixed trip counts (`lax.fori_loop`) become `lax.while_loop`s that end
+    when every lane has stopped, with the same results: a stopped lane's body is
+    the identity. Reverse-mode AD does not go through them: `ccd_converged`
+    differentiates a rebuild of the converged simplex instead.
+    """
+    prev = getattr(_CTX, "early", False)
+    _CTX.early = True
+    try:
+        yield
+    finally:
+        _CTX.early = prev
+
+
+def _loop(n: int, body, carry, done):
+    """lax.fori_loop(0, n, body, carry), or, within `until_converged`, until `done(carry)`."""
+    if not getattr(_CTX, "early", False):
+        return lax.fori_loop(0, n, body, carry)
+
+    def cond(c):
+        i, x = c
+        return (i < n) & ~done(x)
+
+    def step(c):
+        i, x = c
+        return i + 1, body(i, x)
+
+    return lax.while_loop(cond, step, (jnp.array(0), carry))[1]
+
+
 
 def dot3(a, b):
     """The dot product a . b in C's order ((a0 b0 + a1 b1) + a2 b2)."""
@@ -705,7 +738,7 @@ def gjk(k1: Kind, k2: Kind, o1: Obj, o2: Obj, x1, x2, vi1, vi2, *, shrink, get_d
         new["nsimplex"] = jnp.where(sep_any, 0, jnp.where(int_in, 4, st["nsimplex"]))
         return new
 
-    st = lax.fori_loop(0, kmax + 4, step, state)
+    st = _loop(kmax + 4, step, state, lambda st: st["mode"] >= 3)
     n = st["n"]
     returned = st["mode"] == 4
     simplex = st["simplex"]
@@ -1011,7 +1044,8 @@ def horizon(P: Polytope, face, w, act, nsteps=NDFS, nhorizon=NHORIZON):
         sp = jnp.where(open_.any(), jnp.max(jnp.where(open_, slots, -1)) + 1, 0)
         return fmap, fidx, nmap, sf, se, sk, sp, hz_idx, hz_edge, ne
 
-    fmap, fidx, nmap, _, _, _, sp, hz_idx, hz_edge, ne = lax.fori_loop(0, nsteps, body, carry)
+    fmap, fidx, nmap, _, _, _, sp, hz_idx, hz_edge, ne = _loop(nsteps, body, carry,
+                                                              lambda c: c[6] == 0)
     return P._replace(fmap=fmap, fidx=fidx, nmap=nmap), hz_idx, hz_edge, ne, sp > 0
 
 
@@ -1163,7 +1197,7 @@ def epa(k1, k2, o1, o2, P: Polytope, vi1, vi2, *, discrete, tolerance=CCD_TOLERA
 
     carry = (P, jnp.array(-1), jnp.asarray(MAX_LIMIT, dtype), jnp.asarray(MAX_LIMIT, dtype),
              jnp.array(False), vi1, vi2, jnp.array(False))
-    P, face, _, _, _, vi1, vi2, over = lax.fori_loop(0, kmax, body, carry)
+    P, face, _, _, _, vi1, vi2, over = _loop(kmax, body, carry, lambda c: c[4])
     ok = face >= 0
     f = jnp.maximum(face, 0)
     tri = vert_at(P.verts, P.fverts[f])
@@ -1202,39 +1236,29 @@ def discrete(k: Kind, o: Obj):
     return jnp.asarray(k.discrete) & (o.margin == 0)
 
 
-def ccd(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
-        tolerance=CCD_TOLERANCE, kmax=CCD_ITERATIONS) -> CCDResult:
-    """mjc_ccd followed by mjc_penetration's test (the 3.17 binary, native CCD).
+class Single(NamedTuple):
+    """mjc_ccd's single contact and the objects' simplex that multiple contacts start from."""
 
-    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
-    line can be checked against the C source.
+    contact: jax.Array  # () bool: mjc_ccd's distance is < 0
+    shallow: jax.Array  # () bool: the shrunk-geom GJK decided (no EPA)
+    dist: jax.Array  # () status->dist[0]
+    x1: jax.Array  # (3,)
+    x2: jax.Array  # (3,)
+    simplex: Vert  # (4,) shallow: GJK's simplex of the shrunk geoms; else rows 0-2: EPA's face
+    nsimplex: jax.Array  # () its size
+    overflow: jax.Array  # () bool
 
-    Args:
-      k1: static description of geom 1 (type 1 <= type 2 as mjc_Convex receives them).
-      k2: static description of geom 2.
-      o1: pose and size of geom 1; its margin is the pair's margin (mjc_initCCDObj).
-      o2: the same of geom 2.
-      max_contacts: static, maxContacts() of mjc_Convex (1, 2 or 4).
-      tolerance: ccd_tolerance.
-      kmax: ccd_iterations (static).
 
-    Returns:
-      `CCDResult` with max(max_contacts, 4) slots when max_contacts > 1, else 1.
-    """
+def _single(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, tolerance, kmax) -> Single:
+    """mjc_ccd up to its single contact (GJK on shrunk geoms, else GJK and EPA on full ones)."""
     dtype = o1.pos.dtype
     itype = jnp.int32
     vi0 = jnp.array(-1, itype)
-    nslot = 4 if max_contacts > 1 else 1
     x1c, x2c = o1.pos, o2.pos
     # ---- shrunk geoms: spheres/capsules to points/segments, margins removed
     always = k1.gtype in (SPHERE, CAPSULE) or k2.gtype in (SPHERE, CAPSULE)
     use_shrink = jnp.asarray(always) | (o1.margin > 0) | (o2.margin > 0)
-    fm1 = 0.5 * o1.margin
-    fm2 = 0.5 * o2.margin
-    if k1.gtype in (SPHERE, CAPSULE):
-        fm1 = fm1 + o1.size[0]
-    if k2.gtype in (SPHERE, CAPSULE):
-        fm2 = fm2 + o2.size[0]
+    fm1, fm2 = _radii(k1, k2, o1, o2)
     # N.B. both GJK runs (shrunk and full geoms) go through one traced body: the
     # vertindex (mesh warm start) carries from the first to the second.
     zero = jnp.zeros((), dtype)
@@ -1265,27 +1289,133 @@ def ccd(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
             tolerance=tolerance, kmax=kmax)
     face = epa_go & (ret == 0) & E.face_ok
     b_contact = ~shallow & face & (E.dist < 0)
-    # ---- single contact
-    x1 = where3(shallow, ax1, E.x1)
-    x2 = where3(shallow, ax2, E.x2)
-    dist = jnp.where(shallow, adist, E.dist)
-    contact = a_contact | b_contact
-    overflow = ~shallow & epa_go & (ret == 0) & E.overflow
+    face4 = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[3:]]), E.face, A.simplex)
+    return Single(
+        contact=a_contact | b_contact, shallow=shallow,
+        dist=jnp.where(shallow, adist, E.dist),
+        x1=where3(shallow, ax1, E.x1), x2=where3(shallow, ax2, E.x2),
+        simplex=tree_where(shallow, A.simplex, face4),
+        nsimplex=jnp.where(shallow, A.nsimplex, 3),
+        overflow=~shallow & epa_go & (ret == 0) & E.overflow)
+
+
+def _multi(k1: Kind, k2: Kind, o1: Obj, o2: Obj, s: Single, max_contacts: int) -> CCDResult:
+    """mjc_penetration's contacts from mjc_ccd's single one (`multicontact` when allowed)."""
+    itype = jnp.int32
     if max_contacts < 2:
-        return CCDResult(contact.astype(itype), dist[None], x1[None], x2[None], overflow)
-    # ---- multiple contacts from the objects' simplex (GJK's, or EPA's final face)
+        return CCDResult(s.contact.astype(itype), s.dist[None], s.x1[None], s.x2[None],
+                         s.overflow)
     from mjstamp.scenes.contacts import gjk_multi  # pylint: disable=g-import-not-at-top
 
-    s1 = Vert(jnp.where(shallow, A.simplex.v1[:3], E.face.v1), None, None,
-              jnp.where(shallow, A.simplex.i1[:3], E.face.i1), None)
-    s2 = Vert(jnp.where(shallow, A.simplex.v2[:3], E.face.v2), None, None,
-              jnp.where(shallow, A.simplex.i2[:3], E.face.i2), None)
-    n_s = jnp.where(shallow, A.nsimplex, 3)
+    nslot = 4
+    sm = s.simplex
     nx, mdist, mx1, mx2, mover = gjk_multi.multicontact(
-        k1, k2, o1, o2, s1.vert, s1.i1, s2.vert, s2.i1, n_s, x1, x2, dist, max_contacts)
-    nx = jnp.where(contact, nx, 1)
+        k1, k2, o1, o2, sm.v1[:3], sm.i1[:3], sm.v2[:3], sm.i2[:3], s.nsimplex, s.x1, s.x2,
+        s.dist, max_contacts)
+    nx = jnp.where(s.contact, nx, 1)
     # mjc_ccd returns the least distance; mjc_penetration keeps all nx witnesses when < 0
     valid = jnp.arange(nslot) < nx
     mind = jnp.min(jnp.where(valid, lax.stop_gradient(mdist), jnp.inf))
-    ncon = jnp.where(contact & (mind < 0), nx, 0)
-    return CCDResult(ncon.astype(itype), mdist, mx1, mx2, overflow | (contact & mover))
+    ncon = jnp.where(s.contact & (mind < 0), nx, 0)
+    return CCDResult(ncon.astype(itype), mdist, mx1, mx2, s.overflow | (s.contact & mover))
+
+
+def ccd(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
+        tolerance=CCD_TOLERANCE, kmax=CCD_ITERATIONS) -> CCDResult:
+    """mjc_ccd followed by mjc_penetration's test (the 3.17 binary, native CCD).
+
+    Long: a line-for-line port of MuJoCo C's code, kept in C's order so each
+    line can be checked against the C source. Reverse-mode AD goes through
+    every one of C's iterations (fixed trip counts); `ccd_converged` gives the
+    same contacts at a fraction of the cost.
+
+    Args:
+      k1: static description of geom 1 (type 1 <= type 2 as mjc_Convex receives them).
+      k2: static description of geom 2.
+      o1: pose and size of geom 1; its margin is the pair's margin (mjc_initCCDObj).
+      o2: the same of geom 2.
+      max_contacts: static, maxContacts() of mjc_Convex (1, 2 or 4).
+      tolerance: ccd_tolerance.
+      kmax: ccd_iterations (static).
+
+    Returns:
+      `CCDResult` with max(max_contacts, 4) slots when max_contacts > 1, else 1.
+    """
+    s = _single(k1, k2, o1, o2, tolerance=tolerance, kmax=kmax)
+    return _multi(k1, k2, o1, o2, s, max_contacts)
+
+
+def _straight(value, rebuilt):
+    """`value` exactly, with the derivatives of `rebuilt` (which equals it to rounding)."""
+    return jax.tree_util.tree_map(
+        lambda v, r: lax.stop_gradient(v) + (r - lax.stop_gradient(r)), value, rebuilt)
+
+
+def _rigid(o: Obj, points):
+    """Points fixed in a geom's frame, as functions of its pose: (..., 3) -> (..., 3).
+
+    Their values come from the converged search (no derivative); their
+    derivatives are those of material points of the geom.
+    """
+    pos, mat = lax.stop_gradient(o.pos), lax.stop_gradient(o.mat)
+    local = jnp.einsum("ji,...j->...i", mat, lax.stop_gradient(points) - pos)
+    return jnp.einsum("ij,...j->...i", o.mat, local) + o.pos
+
+
+def ccd_converged(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
+                  tolerance=CCD_TOLERANCE, kmax=CCD_ITERATIONS) -> CCDResult:
+    """`ccd`'s contacts, its search run to convergence only, then differentiated once.
+
+    GJK and EPA run without derivatives and stop when C's tests stop them
+    (`until_converged`). Their result is then rebuilt as a function of the
+    poses from the simplex they converged to: its points are material points
+    of the two geoms (a box corner, a mesh vertex, a point of a cylinder's
+    rim), the single contact is the closest point of that simplex (GJK) or the
+    projection of the origin on EPA's final face, and the multiple contacts
+    follow from those as in `ccd`. Values are `ccd`'s to the bit (`_straight`).
+
+    Derivatives: exact where the closest features are flat (boxes, meshes, a
+    cylinder's cap or side line) and the depth's everywhere to first order;
+    on a curved feature the contact point's slide along the surface is left
+    out (the search's tolerance, 1e-6, bounds what C itself resolves).
+
+    Args: as `ccd`.
+
+    Returns:
+      `CCDResult`, as `ccd`.
+    """
+    sg = lax.stop_gradient
+    with until_converged():
+        s = _single(k1, k2, sg(o1), sg(o2), tolerance=tolerance, kmax=kmax)
+    s = jax.tree_util.tree_map(sg, s)
+    sm = s.simplex
+    v1 = _straight(sm.v1, _rigid(o1, sm.v1))
+    v2 = _straight(sm.v2, _rigid(o2, sm.v2))
+    vert = v1 - v2
+    # shallow: the closest point of GJK's simplex, inflated by the shrunk radii
+    lam = subdistance(s.nsimplex, vert)
+    g1 = lincomb4(lam, s.nsimplex, v1)
+    g2 = lincomb4(lam, s.nsimplex, v2)
+    gd = safe_sqrt(dot3(g1 - g2, g1 - g2))
+    a1, a2, ad = _inflate(g1, g2, gd, *_radii(k1, k2, o1, o2))
+    # deep: the origin's projection on EPA's face
+    _, fv = project_origin_plane(vert[2], vert[1], vert[0])
+    tl = tri_affine_coord(vert[0], vert[1], vert[2], fv)
+    e1 = (mul(tl[0], v1[0]) + mul(tl[1], v1[1])) + mul(tl[2], v1[2])
+    e2 = (mul(tl[0], v2[0]) + mul(tl[1], v2[1])) + mul(tl[2], v2[2])
+    ed = -safe_sqrt(dot3(fv, fv))
+    x1 = _straight(s.x1, where3(s.shallow, a1, e1))
+    x2 = _straight(s.x2, where3(s.shallow, a2, e2))
+    dist = _straight(s.dist, jnp.where(s.shallow, ad, ed))
+    s = s._replace(x1=x1, x2=x2, dist=dist, simplex=sm._replace(v1=v1, v2=v2, vert=vert))
+    return _multi(k1, k2, o1, o2, s, max_contacts)
+
+
+def _radii(k1: Kind, k2: Kind, o1: Obj, o2: Obj):
+    """What shallow witnesses are inflated by: half the margin, plus a sphere's or capsule's radius."""
+    fm1, fm2 = 0.5 * o1.margin, 0.5 * o2.margin
+    if k1.gtype in (SPHERE, CAPSULE):
+        fm1 = fm1 + o1.size[0]
+    if k2.gtype in (SPHERE, CAPSULE):
+        fm2 = fm2 + o2.size[0]
+    return fm1, fm2
