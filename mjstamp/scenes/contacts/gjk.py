@@ -16,10 +16,13 @@ These functions follow the binary, decoded instruction by instruction and
 checked against it through `mjc_ccd` (ctypes) on random poses.
 
 JAX form: every loop has a fixed trip count (`lax.fori_loop`/`scan` with masks,
-never `while_loop`, so reverse-mode AD goes through), the polytope lives in
-fixed-size arrays sized for `ccd_iterations`, data-dependent branches compute
-both sides and select. Floating-point expressions keep C's evaluation order so
-that the discrete decisions (which face, which vertex) are C's.
+a stopped lane's body the identity), so reverse-mode AD can go through it
+(`ccd`); within `until_converged` the same loops are `while_loop`s that end when
+C's tests stop them, and `ccd_converged` differentiates only a rebuild of the
+converged simplex (what the colliders use). The polytope lives in fixed-size
+arrays sized for `ccd_iterations`, data-dependent branches compute both sides
+and select. Floating-point expressions keep C's evaluation order so that the
+discrete decisions (which face, which vertex) are C's.
 """
 
 from __future__ import annotations
