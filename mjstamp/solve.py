@@ -123,6 +123,9 @@ class SolveResult:
       found: {task plan: {"seconds", "source", "theta"}}, each task plan as it
         was first verified in MuJoCo C during the solve (`Found`): the
         screen's successes at once, then the landings', STAMP's, repair's.
+      symbol_disagreements: how many final plans the JAX signed distances
+        (sd < 0) would decode to other symbols than MuJoCo C's colliders do;
+        C's decode is the one verified (`verify.Replay.symbol_disagreements`).
     """
 
     problem: Problem
@@ -150,6 +153,7 @@ class SolveResult:
     robustness: dict | None = None
     polish: dict | None = None
     found: dict | None = None
+    symbol_disagreements: int | None = None
 
     @property
     def task(self) -> Problem:
@@ -693,6 +697,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     if progress is None and not parallel.is_lead():
         progress = QUIET  # N.B. one of several processes: process 0 speaks for all
     problem = as_problem(task)
+    problem.check_relaxed()  # N.B. before the screen: STAMP relaxes every symbol
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     devices = parallel.shard_count(cfg.devices)
     if jax.process_count() > 1 and devices != jax.device_count():
@@ -791,6 +796,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         devices=devices, loss=loss, robustness=robust,
         polish=_polish_report(polished, landing, early, outcome, source, given_back),
         found=found.as_dict(),
+        symbol_disagreements=int(outcome.replay.symbol_disagreements().sum()),
     )
 
 

@@ -152,6 +152,7 @@ def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatc
     summary = result.summary()
     assert set(summary["compiles"]["rollouts"]) <= {"jit(stamp-svgd-evaluate)", "jit(final)"}
     assert summary["particles"] == 8 and summary["task"] == "tiny"
+    assert summary["symbol_disagreements"] == 0  # C decodes the wall as the JAX sd < 0 does
     # β "auto" from the screen's costs, and the log posterior STAMP sampled used it.
     assert summary["cost_scale"] == seeding.auto_cost_scale(seeding.Screen(**summary["screen"]))
     assert result.problem.cost_scale == summary["cost_scale"]

@@ -1304,3 +1304,64 @@ def make_distance_fn(
         )
 
     return distance
+
+
+def make_distance_bound(
+    m: mujoco.MjModel, geom1: str | int, geom2: str | int
+) -> Callable[[jax.Array, jax.Array], jax.Array]:
+    """Builds ℓ(geom_xpos, geom_xmat): a cheap bound that is > 0 only if two geoms are apart.
+
+    From MuJoCo's own bounding volumes, for any pair of geom types: each geom
+    lies in its bounding sphere (``geom_rbound`` about its frame's origin) and
+    in its box (``geom_aabb``, in its frame); a plane is its half-space. ℓ is
+    the larger of the gap between the two spheres and the gap between the
+    smaller geom's sphere and the larger geom's box (a plane: the height of the
+    other geom's sphere above it). Where ℓ > 0 the geoms are at least ℓ apart, so no
+    collider can report a contact at zero margin; `verify.Replay` asks MuJoCo C
+    (`mjstamp.kinematics.touching`) only at the other states. A few flops
+    per pair, where the signed distance of a curved pair costs 0.1 ms.
+
+    Args:
+      m: the model.
+      geom1: name or id of the first geom.
+      geom2: name or id of the second geom.
+
+    Returns:
+      A pure function of ``geom_xpos`` (ngeom, 3) and ``geom_xmat`` (ngeom, 3, 3)
+      or (ngeom, 9) returning the () bound; -inf (nothing to skip) for a plane
+      against a plane or height field, which nothing collides.
+    """
+    g1, g2 = _geom_id(m, geom1), _geom_id(m, geom2)
+    t1, t2 = int(m.geom_type[g1]), int(m.geom_type[g2])
+
+    def nothing_to_skip(geom_xpos: jax.Array, geom_xmat: jax.Array) -> jax.Array:
+        return jnp.full((), -jnp.inf, geom_xpos.dtype)
+
+    if _PLANE in (t1, t2):
+        plane, other = (g1, g2) if t1 == _PLANE else (g2, g1)
+        if int(m.geom_type[other]) in (_PLANE, _HFIELD):
+            return nothing_to_skip
+        radius = float(m.geom_rbound[other])
+
+        def above_plane(geom_xpos: jax.Array, geom_xmat: jax.Array) -> jax.Array:
+            normal = geom_xmat[plane].reshape(3, 3)[:, 2]
+            return _dot(normal, geom_xpos[other] - geom_xpos[plane]) - radius
+
+        return above_plane
+    # N.B. one box, the larger: against the smaller geom's sphere it is the tighter
+    # term (a ball against a long wall), and a second costs as much again.
+    if np.prod(m.geom_aabb[g1, 3:]) < np.prod(m.geom_aabb[g2, 3:]):
+        g1, g2 = g2, g1
+    r1, r2 = float(m.geom_rbound[g1]), float(m.geom_rbound[g2])
+    if not (r1 > 0 and r2 > 0):
+        return nothing_to_skip  # N.B. no bounding sphere (only planes have none): ask C
+    centre, half = np.array(m.geom_aabb[g1, :3]), np.array(m.geom_aabb[g1, 3:])
+
+    def bound(geom_xpos: jax.Array, geom_xmat: jax.Array) -> jax.Array:
+        delta = geom_xpos[g2] - geom_xpos[g1]
+        # N.B. elementwise (matᵀ·delta as a sum of products): XLA fuses it with the rest.
+        local = jnp.sum(geom_xmat[g1].reshape(3, 3) * delta[:, None], axis=0) - centre
+        to_box = _safe_norm(jnp.maximum(jnp.abs(local) - half, 0.0))
+        return jnp.maximum(_safe_norm(delta) - r1, to_box) - r2
+
+    return bound

@@ -33,6 +33,7 @@ import numpy as np
 from mjstamp import relax, svgd
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
+from mjstamp.scenes.distance import make_distance_fn
 from mjstamp.scenes.rollout import set_columns
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable, distance_fn
@@ -68,7 +69,9 @@ class Poses:
     def contact(self, geom1: str | int, geom2: str | int):
         """(n, T) whether two geoms touch at each step: signed distance < 0.
 
-        MuJoCo makes a contact exactly then for geoms without margin.
+        MuJoCo makes a contact exactly then for geoms without margin. A
+        `verify.Replay` answers from MuJoCo C's own colliders instead
+        (`kinematics.touching`), for any pair C collides.
         """
         return self.signed_distance(geom1, geom2) < 0.0
 
@@ -80,7 +83,8 @@ class Rollout(Poses):
       scene: the `Scene`.
       traj: {field: (n, T, ...)} arrays (states after steps 1..T), `FIELDS`.
       params: {variable name: (n, size)}.
-      symbols: {contact name: (n,)} soft indicators in (0, 1).
+      symbols: {contact name: (n,)} soft indicators in (0, 1); reading one the
+        gradient model cannot relax (`Problem.relaxes`) is its one-line error.
     """
 
     def __init__(self, problem: Problem, traj: dict, params: dict):
@@ -88,7 +92,7 @@ class Rollout(Poses):
         self.scene = problem.scene
         self.traj = traj
         self.params = params
-        self.symbols: dict[str, jax.Array] = {}
+        self.symbols: dict[str, jax.Array] = _Symbols(problem)
         self._sd: dict[tuple[int, int], jax.Array] = {}
 
     def signed_distance(self, geom1: str | int, geom2: str | int) -> jax.Array:
@@ -104,6 +108,20 @@ class Rollout(Poses):
     def until_contact(self, geom1: str | int, geom2: str | int) -> jax.Array:
         """(n, T) mask of the steps up to and including the first contact."""
         return relax.first_contact_mask(self.signed_distance(geom1, geom2) <= 0.0)
+
+
+class _Symbols(dict):
+    """A rollout's soft indicators by symbol name; a symbol without one raises its reason."""
+
+    def __init__(self, problem: Problem):
+        super().__init__()
+        self.problem = problem
+
+    def __missing__(self, name: str):
+        reason = self.problem.unrelaxed_reason(name)
+        if reason is None:
+            raise KeyError(name)
+        raise MjstampError(reason)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,12 +272,59 @@ class Problem:
         return dataclasses.replace(self, cost_scale=float(scale))
 
     def distance_fn(self, g1: int, g2: int) -> Callable:
-        """Signed distance function of a geom pair (see scenes.distance), memoised."""
+        """Signed distance function of a geom pair (see scenes.distance), memoised.
+
+        Raises:
+          MjstampError: a pair of geom types without a JAX distance (one line).
+        """
         key = (min(g1, g2), max(g1, g2))
         if key not in self.distance_fns:
             # N.B. a memo, not state: the function of a pair never changes.
             self.distance_fns[key] = distance_fn(self.scene.m, self.name, *key)  # type: ignore[index]
         return self.distance_fns[key]
+
+    def has_distance(self, g1: int, g2: int) -> bool:
+        """Whether a geom pair has a JAX signed distance (`distance_fn` gives one)."""
+        try:
+            self.distance_fn(g1, g2)
+        except MjstampError:
+            return False
+        return True
+
+    def relaxes(self, contact: Contact) -> bool:
+        """Whether the gradient model relaxes a symbol: its pairs have JAX distances.
+
+        Every symbol decodes from MuJoCo C; only these have a soft indicator
+        (App. B-B), which STAMP's log density and kernel read.
+        """
+        return all(self.has_distance(*pair) for pair in ((contact.geom1, contact.geom2),
+                                                         contact.before) if pair is not None)
+
+    def unrelaxed_reason(self, name: str) -> str | None:
+        """The one line saying why symbol `name` has no soft indicator; None if it has one.
+
+        None too for a name that is no symbol.
+        """
+        contact = next((c for c in self.contacts if c.name == name), None)
+        if contact is None or self.relaxes(contact):
+            return None
+        for pair in ((contact.geom1, contact.geom2), contact.before):
+            try:
+                if pair is not None:
+                    make_distance_fn(self.scene.m, *pair)
+            except MjstampError as e:
+                why = " ".join(str(e).split())
+                break
+        return (f"task {self.name!r}: symbol {name!r} has no soft indicator in the gradient "
+                f"model, which needs a JAX signed distance: {why}; it decodes from MuJoCo C "
+                "(screen, samplers, verify), but STAMP needs every symbol relaxed")
+
+    def check_relaxed(self) -> None:
+        """Raises the one line of the first symbol the gradient model cannot relax, if any."""
+        for c in self.contacts:
+            reason = self.unrelaxed_reason(c.name)
+            if reason is not None:
+                raise MjstampError(reason)
 
     # θ -> rollout inputs -------------------------------------------------------
 
@@ -329,6 +394,8 @@ class Problem:
         """
         r = Rollout(self, traj, params)
         for c in self.contacts:
+            if not self.relaxes(c):
+                continue  # N.B. decoded from C only: reading its indicator raises why
             mask = None if c.before is None else r.until_contact(*c.before)
             r.symbols[c.name] = relax.soft_contact_indicator(
                 r.signed_distance(c.geom1, c.geom2), alpha=c.alpha, beta=c.beta, mask=mask
@@ -485,17 +552,30 @@ class Problem:
                 actions[i] += [v.options[j] for j in choice[i]]
         return actions
 
-    def decode(self, replay, theta: np.ndarray) -> Decoded:
-        """Task plans read off a replay (`verify.Replay`): symbols, actions, success label."""
-        n, T = replay.qpos.shape[:2]
+    def symbol_bits(self, contact: Callable, n: int, T: int) -> np.ndarray:
+        """(n, S) int: each symbol's bit, from `contact(g1, g2) -> (n, T)` bool.
+
+        A symbol is 1 where its pair touches at some step up to and including
+        the first touch of its `before` pair (every step where that never touches).
+        """
         bits = np.zeros((n, len(self.contacts)), int)
         for k, c in enumerate(self.contacts):
-            touch = replay.contact(c.geom1, c.geom2)
+            touch = contact(c.geom1, c.geom2)
             if c.before is not None:
-                first = replay.contact(*c.before)
+                first = contact(*c.before)
                 t_c = np.where(first.any(axis=1), first.argmax(axis=1), T - 1)
                 touch = touch & (np.arange(T)[None] <= t_c[:, None])
             bits[:, k] = touch.any(axis=1)
+        return bits
+
+    def decode(self, replay, theta: np.ndarray) -> Decoded:
+        """Task plans read off a replay (`verify.Replay`): symbols, actions, success label.
+
+        Which geoms touch is the replay's `contact`: MuJoCo C's colliders for a
+        `verify.Replay` (C or MJX states alike), whatever the pair's types.
+        """
+        n, T = replay.qpos.shape[:2]
+        bits = self.symbol_bits(replay.contact, n, T)
         actions = self.planned_actions(theta)
         if self.actions_fn is not None:
             actions = [list(a) for a in self.actions_fn(replay, actions)]

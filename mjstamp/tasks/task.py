@@ -29,7 +29,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from mjstamp import svgd
+from mjstamp import kinematics, svgd
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
 from mjstamp.scenes.scene import Scene
@@ -279,6 +279,13 @@ class Task:
     ) -> None:
         """Declares a symbol: geom1 touches geom2 (before the first `before` contact).
 
+        Any pair of geoms MuJoCo C collides can be a symbol: plans decode it from
+        C's colliders (`verify.Replay.contact`: distance < 0 at zero margin).
+        STAMP relaxes it with the soft indicator of App. B-B, on the pair's JAX
+        signed distance (`scenes.distance.SUPPORTED_PAIRS`); a pair without one
+        (cylinder-box, a mesh against a cylinder) decodes all the same, but only
+        solvers that need no soft indicator take the task (`Problem.relaxes`).
+
         Args:
           name: symbol name; its bit in the task plan follows declaration order.
           geom1: first geom name.
@@ -297,11 +304,12 @@ class Task:
             alpha = 4.0 / min(radii) if radii else 100.0  # two planes: no size to go by
         if not alpha > 0:
             raise MjstampError(f"task {self.name!r}: contact {name!r} alpha={alpha} must be > 0")
-        self._distance(g1, g2)  # unsupported geom pairs fail here, at declaration
         pair = None
         if before is not None:
             pair = (self.scene.geom(before[0]), self.scene.geom(before[1]))
-            self._distance(*pair)
+        for ids in ((g1, g2), pair):
+            if ids is not None:
+                self._symbol_pair(name, *ids)  # a pair C cannot collide fails here
         self.contacts.append(Contact(name, g1, g2, pair, float(alpha), float(beta)))
 
     def cost(self, name: str, fn: Callable[[Rollout], jax.Array], weight: float = 1.0, *,
@@ -502,12 +510,23 @@ class Task:
             self.kernel_override = kernel
 
 
-    def _distance(self, g1: int, g2: int) -> Callable:
-        """Checks (at declaration) that a geom pair has a signed distance; memoised."""
+    def _symbol_pair(self, symbol: str, g1: int, g2: int) -> None:
+        """Checks (at declaration) that MuJoCo C collides a symbol's geom pair.
+
+        Its JAX signed distance, the symbol's soft indicator in the gradient
+        model, is memoised where there is one; a pair without (cylinder-box,
+        a mesh against a cylinder) still decodes from C (`Problem.relaxes`).
+        """
+        try:
+            kinematics.check_touch_pair(self.scene.m, g1, g2)
+        except MjstampError as e:
+            raise MjstampError(f"task {self.name!r}: symbol {symbol!r}: {e}") from None
         key = (min(g1, g2), max(g1, g2))
         if key not in self._distance_fns:
-            self._distance_fns[key] = distance_fn(self.scene.m, self.name, *key)
-        return self._distance_fns[key]
+            try:
+                self._distance_fns[key] = distance_fn(self.scene.m, self.name, *key)
+            except MjstampError:
+                pass  # N.B. decoded from C alone; `Problem.unrelaxed_reason` says why
 
     @property
     def dim(self) -> int:

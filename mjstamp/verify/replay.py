@@ -1,9 +1,13 @@
 """Replays of particles (MuJoCo C or MJX) with their poses, decoded and costed.
 
-A `Replay` carries the states of n plans and the poses the planner reads off
-them (MJX kinematics in the scene's precision: body and site positions and
-the signed distances of the pairs decode reads), computed once when it is
-made; `decode`, success predicates and action rules read those.
+A `Replay` carries the states of n plans, the poses the planner reads off them
+(MJX kinematics in the scene's precision: body and site positions) and which
+geom pairs of the task's symbols touch at each state, as MuJoCo C's own
+colliders say (`kinematics.touching`), all computed once when it is made;
+`decode`, success predicates and action rules read those. The JAX signed
+distances stay with the gradient model (the symbols' soft indicators); a
+Replay computes them only when asked (`signed_distance`, and
+`symbol_disagreements`, which counts the plans they would decode otherwise).
 """
 
 from __future__ import annotations
@@ -14,15 +18,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjstamp import kinematics
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.parallel import local_device
 from mjstamp.scenes import mjx
+from mjstamp.scenes.distance import make_distance_bound
 from mjstamp.scenes.rollout import replay as replay_c
 from mjstamp.tasks.problem import FIELDS, Decoded, Poses, Rollout, as_problem
 
+SLACK = 1e-3
+"""Where `Replay` asks MuJoCo C whether a pair touches: at the states whose distance
+bound (`scenes.distance.make_distance_bound`, from MJX kinematics in the scene's
+precision) is at most SLACK times the scene's size (`Scene.length_scale`): far
+above float32's rounding of a pose, so the bound never hides a contact C sees."""
+
 
 class Replay(Poses):
-    """States of n plans over T steps and their poses (numpy, float64).
+    """States of n plans over T steps, their poses and contacts (numpy, float64).
 
     Attributes:
       qpos: (n, T, nq) positions after steps 1..T.
@@ -30,8 +42,9 @@ class Replay(Poses):
       ctrl: (n, T, nu) controls applied at steps 1..T (C replays only, else None).
       traj: {field: (n, T, ...)}: qpos, qvel (where known), xpos (body
         positions) and site_xpos (site positions).
-      distances: {(g1, g2): (n, T)} signed distances of the pairs decode reads
-        (`Problem.contact_pairs`).
+      touch: {(g1, g2): (n, T) bool} whether the geom pairs decode reads
+        (`Problem.contact_pairs`, low id first) touch at each state, by MuJoCo
+        C's colliders (`kinematics.touching`: distance < 0 at zero margin).
     """
 
     def __init__(self, problem, qpos: np.ndarray, source: str, *, qvel=None, ctrl=None):
@@ -42,9 +55,17 @@ class Replay(Poses):
         self.qpos = np.asarray(qpos, np.float64)
         self.qvel = None if qvel is None else np.asarray(qvel, np.float64)
         self.ctrl = None if ctrl is None else np.asarray(ctrl, np.float64)
-        traj, self.distances = poses(problem, self.qpos)
+        traj, bounds = poses(problem, self.qpos)
         states = {"qpos": self.qpos, "qvel": self.qvel}
         self.traj = {**{k: v for k, v in states.items() if v is not None}, **traj}
+        pairs = problem.contact_pairs()
+        slack = SLACK * self.scene.length_scale
+        # (n, T, k): where the bound leaves contact possible; C is asked there only.
+        self._near = np.stack([bounds[p] <= slack for p in pairs], axis=-1) if pairs else (
+            np.zeros((*self.qpos.shape[:2], 0), bool))
+        touch = kinematics.touching(self.scene.m, self.qpos, pairs, self._near)
+        self.touch = {p: touch[..., i] for i, p in enumerate(pairs)}
+        self._distances: dict[tuple[int, int], np.ndarray] | None = None
 
     def rows(self, idx) -> Replay:
         """The replay of plans `idx` alone (an index array or list)."""
@@ -62,19 +83,80 @@ class Replay(Poses):
         """(n, T, nsite, 3) site positions."""
         return self.traj["site_xpos"]
 
-    def signed_distance(self, geom1: str | int, geom2: str | int) -> np.ndarray:
-        """(n, T) signed distance between two geoms, for the pairs decode reads."""
+    def _key(self, geom1: str | int, geom2: str | int, what: str) -> tuple[int, int]:
+        """The pair's key in `touch`, or one line naming it and the pairs a replay holds."""
         g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
         key = (min(g1, g2), max(g1, g2))
-        if key not in self.distances:
-            raise MjstampError(f"a replay holds the distances of the geom pairs decode reads; "
-                               f"{key} is not one; valid: {valid_list(self.distances)}")
+        if key not in self.touch:
+            m = self.scene.m
+            valid = [f"{m.geom(a).name or a}-{m.geom(b).name or b}" for a, b in self.touch]
+            raise MjstampError(f"a replay holds the {what} of the geom pairs decode reads "
+                               f"(the symbols'); {geom1!r}-{geom2!r} is not one; valid: "
+                               f"{valid_list(valid)}")
+        return key
+
+    def contact(self, geom1: str | int, geom2: str | int) -> np.ndarray:
+        """(n, T) whether two geoms touch at each step, as MuJoCo C's colliders say.
+
+        Distance < 0 at zero margin (`kinematics.touching`), for the pairs decode
+        reads; any pair of geom types C collides.
+        """
+        return self.touch[self._key(geom1, geom2, "contacts")]
+
+    def signed_distance(self, geom1: str | int, geom2: str | int) -> np.ndarray:
+        """(n, T) JAX signed distance between two geoms, for the pairs decode reads.
+
+        Computed on first call for every such pair with a JAX distance
+        (`scenes.distance`), on MJX kinematics in the scene's precision.
+        """
+        key = self._key(geom1, geom2, "signed distances")
+        self.problem.distance_fn(*key)  # N.B. a pair without one: its one-line error
         return self.distances[key]
+
+    @property
+    def distances(self) -> dict[tuple[int, int], np.ndarray]:
+        """{(g1, g2): (n, T)} JAX signed distances of the pairs decode reads that have one."""
+        if self._distances is None:
+            fn, pairs = _distances_fn(self.problem)
+            (dist,) = _batched(fn, self.problem, self.qpos)
+            self._distances = {p: dist[..., i] for i, p in enumerate(pairs)}
+        return self._distances
+
+    def symbol_disagreements(self) -> np.ndarray:
+        """(n,) plans whose symbols the JAX signed distances (sd < 0) decode otherwise than C.
+
+        C's decode is the one `decode` reads. Compared: the symbols whose pairs
+        (and `before` pair) have a JAX distance; the distances are computed at
+        the states where the bound leaves contact possible (elsewhere both say
+        apart), so the check costs a fraction of a full decode by distances.
+        """
+        problem, (n, T) = self.problem, self.qpos.shape[:2]
+        compared = [k for k, c in enumerate(problem.contacts) if problem.relaxes(c)]
+        if not compared:
+            return np.zeros(n, bool)
+        fn, pairs = _distances_fn(problem)
+        near = self._near[..., [list(self.touch).index(p) for p in pairs]].any(-1).reshape(-1)
+        rows = np.flatnonzero(near)
+        touch = {p: np.zeros(n * T, bool) for p in pairs}
+        if len(rows):
+            (dist,) = _batched(fn, problem, self.qpos.reshape(n * T, 1, -1)[rows])
+            for i, p in enumerate(pairs):
+                touch[p][rows] = dist[:, 0, i] < 0.0
+        touch = {p: t.reshape(n, T) for p, t in touch.items()}
+        apart = np.zeros((n, T), bool)
+
+        def jax_contact(g1, g2):  # N.B. a pair without a distance: its symbols are not compared
+            return touch.get((min(g1, g2), max(g1, g2)), apart)
+
+        c_bits = problem.symbol_bits(self.contact, n, T)[:, compared]
+        jax_bits = problem.symbol_bits(jax_contact, n, T)[:, compared]
+        return (c_bits != jax_bits).any(axis=1)
 
 
 # Compiled per declaration and precision: kinematics and distances do not depend on
 # the gradient model's solver options, so a calibrated problem reuses them.
 _KINEMATICS: dict[tuple[str, Any], Any] = {}
+_DISTANCES: dict[tuple[str, Any], Any] = {}
 _STATE_COSTS: dict[tuple[str, Any], Any] = {}
 _STATE_RESIDUALS: dict[tuple[str, Any], Any] = {}
 
@@ -87,36 +169,43 @@ def _kinematics(problem):
 
 
 def _kinematics_fn(problem):
-    """jit(vmap): qpos (B, nq) -> body, site positions and pair distances."""
+    """jit(vmap): qpos (B, nq) -> body, site positions and the pairs' distance bounds."""
     key = (problem.fingerprint, problem.scene.dtype)
     if key not in _KINEMATICS:
-        kinematics = _kinematics(problem)
+        kinematics_one = _kinematics(problem)
         pairs = problem.contact_pairs()
-        fns = [problem.distance_fn(*p) for p in pairs]
+        fns = [make_distance_bound(problem.scene.m, *p) for p in pairs]
 
         def one(qpos):
-            d = kinematics(qpos)
-            dist = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else jnp.zeros(0)
-            return d.xpos, d.site_xpos, dist
+            d = kinematics_one(qpos)
+            bound = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else (
+                jnp.zeros(0, qpos.dtype))
+            return d.xpos, d.site_xpos, bound
 
         _KINEMATICS[key] = (jax.jit(jax.vmap(one)), pairs)
     return _KINEMATICS[key]
 
 
-def poses(problem, qpos: np.ndarray, chunk: int = 65536):
-    """The planner's poses of states: MJX kinematics in the scene's precision, float64.
+def _distances_fn(problem):
+    """jit(vmap): qpos (B, nq) -> (k,) JAX signed distances of the decode's pairs that have one."""
+    key = (problem.fingerprint, problem.scene.dtype)
+    if key not in _DISTANCES:
+        kinematics_one = _kinematics(problem)
+        pairs = [p for p in problem.contact_pairs() if problem.has_distance(*p)]
+        fns = [problem.distance_fn(*p) for p in pairs]
 
-    Args:
-      problem: the `Problem`.
-      qpos: (n, T, nq) positions.
-      chunk: most states per compiled call (calls take a power of two of them).
+        def one(qpos):
+            d = kinematics_one(qpos)
+            return (jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns
+                    else jnp.zeros(0, qpos.dtype),)
 
-    Returns:
-      ({"xpos": (n, T, nbody, 3), "site_xpos": (n, T, nsite, 3)},
-      {(g1, g2): (n, T) signed distance} for `Problem.contact_pairs`).
-    """
+        _DISTANCES[key] = (jax.jit(jax.vmap(one)), pairs)
+    return _DISTANCES[key]
+
+
+def _batched(fn, problem, qpos: np.ndarray, chunk: int = 65536) -> list[np.ndarray]:
+    """The outputs of fn over states (n, T, nq), in compiled batches: each (n, T, ...) float64."""
     n, T, nq = qpos.shape
-    fn, pairs = _kinematics_fn(problem)
     flat = qpos.reshape(-1, nq)
     outs = []
     # N.B. one compiled shape per power of two up to `chunk`: a caller whose batches vary
@@ -129,10 +218,29 @@ def poses(problem, qpos: np.ndarray, chunk: int = 65536):
             part = np.concatenate([part, np.repeat(part[-1:], pad, axis=0)])
         out = jax.device_get(fn(jnp.asarray(part, problem.scene.dtype)))
         outs.append([np.asarray(o[: len(part) - pad], np.float64) for o in out])
-    xpos, site_xpos, dist = (np.concatenate(parts) for parts in zip(*outs, strict=True))
-    traj = {"xpos": xpos.reshape(n, T, -1, 3), "site_xpos": site_xpos.reshape(n, T, -1, 3)}
-    dist = dist.reshape(n, T, len(pairs))
-    return traj, {p: dist[:, :, i] for i, p in enumerate(pairs)}
+    return [np.concatenate(parts).reshape(n, T, *parts[0].shape[1:])
+            for parts in zip(*outs, strict=True)]
+
+
+def poses(problem, qpos: np.ndarray, chunk: int = 65536):
+    """The planner's poses of states: MJX kinematics in the scene's precision, float64.
+
+    Args:
+      problem: the `Problem`.
+      qpos: (n, T, nq) positions.
+      chunk: most states per compiled call (calls take a power of two of them).
+
+    Returns:
+      ({"xpos": (n, T, nbody, 3), "site_xpos": (n, T, nsite, 3)},
+      {(g1, g2): (n, T) distance bound} for `Problem.contact_pairs`: where it is
+      > 0 the pair is apart (`scenes.distance.make_distance_bound`)).
+    """
+    if len(qpos) == 0 or qpos.shape[1] == 0:
+        raise MjstampError(f"a replay needs at least one plan and one step; got qpos of "
+                           f"shape {qpos.shape}")
+    fn, pairs = _kinematics_fn(problem)
+    xpos, site_xpos, bound = _batched(fn, problem, qpos, chunk)
+    return {"xpos": xpos, "site_xpos": site_xpos}, {p: bound[..., i] for i, p in enumerate(pairs)}
 
 
 def simulate_c(task, theta: np.ndarray) -> Replay:
