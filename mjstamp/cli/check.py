@@ -121,7 +121,9 @@ def _print_report(report: dict, *, calibrated_by_flags: bool) -> int:
     if report["rel_err_median"] is not None:
         print(f"AD vs FD         scene's own physics: rel err median "
               f"{report['rel_err_median']:.2e}, p95 {report['rel_err_p95']:.2e}; gradient "
-              f"model: median {report['model_rel_err_median']:.2e}")
+              f"model: median {report['model_rel_err_median']:.2e}; over the "
+              f"{report['fd_smooth_particles']} of {report['particles']} particles smooth at "
+              f"the step")
     print(f"value-and-grad   {report['us_per_particle_step']:.1f} us per particle-step "
           f"(compile {report['compile_s']:.1f} s)")
     if report["healthy"]:
