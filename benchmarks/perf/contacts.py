@@ -10,10 +10,11 @@ any; `contacts.exact_meshes()` is on here, so the mesh pairs MJX collides
 itself by default are measured with their ports too). Prints, per pair and
 engine, the draws whose number of active contacts differs from C's and the
 worst difference of distance, position, normal and frame over the rest, and
-the time per pair-collision (jitted, vmapped over the draws, median of 3).
+the time per pair-collision (jitted, vmapped over the draws, median of 3);
+with --grad also that of a value and gradient with respect to the geom poses.
 
 Usage: python benchmarks/perf/contacts.py [--pairs box-box,plane-box] [--draws 10000]
-       [--seed 1] [--json] [--save FILE]
+       [--seed 1] [--grad] [--json] [--save FILE]
 """
 
 from __future__ import annotations
@@ -38,8 +39,12 @@ PAIRS = (
 )
 
 
-def _timed(pm, draws) -> float:
-    """µs per pair-collision of the installed table (jitted, vmapped; median of 3)."""
+def _timed(pm, draws, grad: bool = False) -> float:
+    """µs per pair-collision of the installed table (jitted, vmapped; median of 3).
+
+    With `grad`: of the value and gradient of the active contacts' distances
+    and positions (summed) with respect to the geom poses.
+    """
     import jax
     import jax.numpy as jnp
 
@@ -49,6 +54,16 @@ def _timed(pm, draws) -> float:
     fn = compare.mjx_collide(pm.xml, contacts.table_version())
     args = [jnp.asarray(a) for a in (draws.size, draws.rbound, draws.margin, draws.gap,
                                      draws.qpos, *compare.c_poses(pm, draws))]
+    if grad:
+        collide = fn
+
+        def total(xpos, xmat, *rest):
+            rows, active = collide(*rest, xpos, xmat)
+            return jnp.sum(jnp.where(active, rows[..., 0] + rows[..., 1:4].sum(-1), 0.0))
+
+        vg = jax.jit(jax.value_and_grad(total, argnums=(0, 1)))
+        args = [args[5], args[6], *args[:5]]
+        fn = vg
     jax.block_until_ready(fn(*args))
     times = []
     for _ in range(3):
@@ -58,7 +73,7 @@ def _timed(pm, draws) -> float:
     return sorted(times)[1] / len(draws) * 1e6
 
 
-def measure(name: str, draws: int, seed: int) -> dict:
+def measure(name: str, draws: int, seed: int, grad: bool = False) -> dict:
     """One pair's row: C's contact count, then per engine the comparison and the cost."""
     import numpy as np
 
@@ -76,9 +91,11 @@ def measure(name: str, draws: int, seed: int) -> dict:
                 with contacts.mjx_own():
                     j = compare.mjx_contacts(pm, dr)
                     us = _timed(pm, dr)
+                    us_grad = _timed(pm, dr, grad=True) if grad else None
             else:
                 j = compare.mjx_contacts(pm, dr)
                 us = _timed(pm, dr)
+                us_grad = _timed(pm, dr, grad=True) if grad else None
         except NotImplementedError:
             row[engine] = {"collided": False}
             continue
@@ -87,6 +104,8 @@ def measure(name: str, draws: int, seed: int) -> dict:
         report.pop("draws")
         report.pop("contacts_c")
         row[engine] = {"collided": True, **report, "us_per_pair": us}
+        if grad:
+            row[engine]["us_per_pair_value_and_grad"] = us_grad
     return row
 
 
@@ -134,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", default=",".join(PAIRS), help="comma-separated TYPE-TYPE")
     parser.add_argument("--draws", type=int, default=10_000)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--grad", action="store_true",
+                        help="also time value and gradient (a GJK/EPA gradient compiles for "
+                        "minutes)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--save", metavar="FILE",
                         help="also write the JSON there, after each pair (merged with the "
@@ -153,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in names:
         t0 = time.perf_counter()
-        rows.append(measure(name, args.draws, args.seed))
+        rows.append(measure(name, args.draws, args.seed, grad=args.grad))
         rows[-1]["seconds"] = time.perf_counter() - t0
         if not args.json:
             print(_line(rows[-1]), flush=True)

@@ -1376,8 +1376,9 @@ def ccd_converged(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
     GJK and EPA run without derivatives and stop when C's tests stop them
     (`until_converged`). Their result is then rebuilt as a function of the
     poses from the simplex they converged to: its points are material points
-    of the two geoms (a box corner, a mesh vertex, a point of a cylinder's
-    rim), the single contact is the closest point of that simplex (GJK) or the
+    of the two geoms (a box corner, a mesh vertex, a capsule's end) or, for one
+    point of a sphere's surface, its support in the converged direction; the
+    single contact is the closest point of that simplex (GJK) or the
     projection of the origin on EPA's final face, and the multiple contacts
     follow from those as in `ccd`. Values are `ccd`'s to the bit (`_straight`).
 
@@ -1475,7 +1476,7 @@ def _curved(k: Kind, o: Obj, points, valid, d, vi, shrunk):
 
 
 def _radii(k1: Kind, k2: Kind, o1: Obj, o2: Obj):
-    """What shallow witnesses are inflated by: half the margin, plus a sphere's or capsule's radius."""
+    """What shallow witnesses are inflated by: half the margin, plus a sphere's/capsule's radius."""
     fm1, fm2 = 0.5 * o1.margin, 0.5 * o2.margin
     if k1.gtype in (SPHERE, CAPSULE):
         fm1 = fm1 + o1.size[0]
