@@ -20,7 +20,7 @@ import numpy as np
 
 from mjstamp.errors import MjstampError
 
-__all__ = ["check_touch_pair", "poses", "touching"]
+__all__ = ["check_touch_pair", "pair_key", "poses", "touching"]
 
 # Geom types MuJoCo C has no collider for between each other (the empty cells of
 # `mjCOLLISIONFUNC`): plane-plane, plane-hfield, hfield-hfield.
@@ -60,15 +60,26 @@ def _geom_label(m: mujoco.MjModel, g: int) -> str:
     return f"geom {name!r} ({kind})" if name else f"geom #{g} ({kind})"
 
 
+def pair_key(g1: int, g2: int) -> tuple[int, int]:
+    """A geom pair's key, low id first: (min, max) of geom ids g1, g2."""
+    return (min(g1, g2), max(g1, g2))
+
+
 def check_touch_pair(m: mujoco.MjModel, g1: int, g2: int) -> None:
     """Checks that `touching` can answer for geoms g1, g2 (ids); else one line naming them.
 
     Raises:
-      MjstampError: the same geom twice, or two types MuJoCo C has no collider
-        for (plane or height field against plane or height field).
+      MjstampError: an id outside the model, the same geom twice, or two types
+        MuJoCo C has no collider for (plane or height field against plane or
+        height field).
     """
+    for g in (g1, g2):
+        if not 0 <= g < m.ngeom:
+            raise MjstampError(f"geom id {g} is not in the model; valid: two different "
+                               f"geoms, ids 0 to {m.ngeom - 1}")
     if g1 == g2:
-        raise MjstampError(f"{_geom_label(m, g1)} cannot touch itself; valid: two geoms")
+        raise MjstampError(f"{_geom_label(m, g1)} cannot touch itself; valid: two "
+                           "different geoms")
     if int(m.geom_type[g1]) in _UNCOLLIDED and int(m.geom_type[g2]) in _UNCOLLIDED:
         raise MjstampError(
             f"{_geom_label(m, g1)} and {_geom_label(m, g2)}: MuJoCo C has no collider "
@@ -83,28 +94,38 @@ def touching(m: mujoco.MjModel, qpos: np.ndarray, pairs, candidates=None) -> np.
     two geoms' types (the function `mj_collision` calls, here through
     `mj_geomDistance`) reports a contact of distance < 0. That is C's contact
     list for geoms without margin (it holds the contacts of distance < margin)
-    and the definition the JAX signed distances decoded with (`sd < 0`); MuJoCo
-    C's depth is its colliders' (GJK/EPA to 1e-6 for curved pairs), so the two
-    may differ at grazing states. Filters (contype, conaffinity, `<exclude>`,
-    parent and child) and margins are not applied: a pair touches by geometry
-    alone, whether or not the scene makes a constraint of it. States with a
-    non-finite coordinate (a replay that blew up) touch nowhere.
+    and the test a JAX signed distance is held to (`sd < 0`,
+    `verify.Replay.symbol_disagreements`); MuJoCo C's depth is its colliders'
+    (GJK/EPA to 1e-6 for curved pairs), so the two may differ at grazing states.
+    Filters (contype, conaffinity, `<exclude>`, parent and child) and margins
+    are not applied: a pair touches by geometry alone, whether or not the
+    scene makes a constraint of it. States with a non-finite coordinate (a
+    replay that blew up) touch nowhere.
 
     Args:
       m: the model.
       qpos: (..., nq) configurations.
-      pairs: k geom id pairs (each passes `check_touch_pair`).
+      pairs: k geom id pairs (each is checked by `check_touch_pair`: N.B.
+        `mj_geomDistance` does not check its ids, and reads out of bounds).
       candidates: (..., k) bool, where C is asked; False elsewhere, where a
         caller's bound shows the pair apart (`scenes.distance.make_distance_bound`).
         None: everywhere.
 
     Returns:
       (..., k) bool.
+
+    Raises:
+      MjstampError: qpos not nq wide, or a pair `check_touch_pair` rejects.
     """
     qpos = np.asarray(qpos, np.float64)
+    if qpos.ndim == 0 or qpos.shape[-1] != m.nq:
+        raise MjstampError(f"qpos of shape {qpos.shape} is not a batch of configurations; "
+                           f"valid: (..., {m.nq}), the model's nq last")
     batch = qpos.shape[:-1]
     flat = qpos.reshape(-1, m.nq)
     pairs = [(int(a), int(b)) for a, b in pairs]
+    for g1, g2 in pairs:
+        check_touch_pair(m, g1, g2)
     out = np.zeros((len(flat), len(pairs)), bool)
     ask = np.isfinite(flat).all(axis=1)[:, None] & (
         True if candidates is None

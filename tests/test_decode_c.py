@@ -20,10 +20,11 @@ PUCKS = {
 }
 
 
-def _task(tiny_xml, puck: str, turn: float = 0.0) -> Task:
+def _task(tiny_xml, puck: str, turn: float = 0.0, floor_z: float = -0.05) -> Task:
     """The tiny scene with its puck of another shape: θ its velocity, the wall a symbol."""
     xml = tiny_xml(turn=turn).replace('type="sphere" size="0.04"', PUCKS[puck])
-    task = Task("tiny", Scene(xml, name=f"tiny_{puck}"), horizon=40)
+    xml = xml.replace('pos="0 0 -0.05"', f'pos="0 0 {floor_z}"')
+    task = Task("tiny", Scene(xml, name=f"tiny_{puck}_{floor_z}"), horizon=40)
     task.box("v", low=[-2, -2], high=[2, 2], initial_qvel=("px", "py"))
     task.contact("wall", "puck", "wall")
     task.cost("goal", costs.reach("puck", ["goal"]))
@@ -46,7 +47,8 @@ def test_c_decode_agrees_with_the_jax_decode(tiny_xml, puck, turn):
     touch = replay.contact("puck", "wall")
     assert touch[0].any() and not touch[1].any()  # N.B. both answers occur: not vacuous
     np.testing.assert_array_equal(touch, replay.signed_distance("puck", "wall") < 0)
-    np.testing.assert_array_equal(replay.touch[pair], touch)
+    np.testing.assert_array_equal(  # N.B. C asked at every state: the bound pruned nothing
+        kinematics.touching(problem.scene.m, replay.qpos, [pair])[..., 0], touch)
     assert not replay.symbol_disagreements().any()
     decoded = verify.decode(problem, replay, theta)
     np.testing.assert_array_equal(decoded.bits[:, 0], touch.any(axis=1))
@@ -64,13 +66,17 @@ def test_disagreements_are_counted_per_plan(tiny_xml):
 
 def test_cylinder_box_symbol_decodes_from_c(tiny_xml):
     """A pair without a JAX distance is a symbol: C's contact list, step by step."""
-    task = _task(tiny_xml, "cylinder")
-    task.contact("floor", "puck", "floor")  # plane-cylinder: a JAX distance, compared below
+    # plane-cylinder: a JAX distance, compared below; the floor 1 mm into the puck
+    # (half-height 0.04), so that it touches at every state.
+    task = _task(tiny_xml, "cylinder", floor_z=-0.039)
+    task.contact("floor", "puck", "floor")
     problem = task.build()
     assert [problem.relaxes(c) for c in problem.contacts] == [False, True]
     theta = _shots(6)
     replay = verify.simulate_c(problem, theta)
-    assert list(verify.decode(problem, replay, theta).code[:2]) == ["10", "00"]
+    assert replay.contact("puck", "floor").all()
+    np.testing.assert_array_equal(replay.signed_distance("puck", "floor") < 0, True)
+    assert list(verify.decode(problem, replay, theta).code[:2]) == ["11", "01"]
     m = problem.scene.m
     d = mujoco.MjData(m)
     d.qvel[:2] = theta[0]
@@ -107,8 +113,38 @@ def test_bad_pairs_are_one_line(tiny_xml):
         Task("t", Scene(xml, name="tiny"), horizon=5).contact("c", "puck", "puck")
     problem = _task(tiny_xml, "sphere").build()
     replay = verify.simulate_c(problem, _shots(1))
-    with pytest.raises(MjstampError, match="'puck'-'floor' is not one; valid: wall-puck"):
+    with pytest.raises(MjstampError, match="'floor'-'puck' is not one; valid: 'wall'-'puck'$"):
         replay.contact("puck", "floor")
+
+
+def test_touching_refuses_ids_and_widths_outside_the_model(tiny_xml):
+    """mj_geomDistance does not check its ids: `touching` does, one line each."""
+    m = Scene(tiny_xml(), name="tiny").m
+    qpos = np.zeros((2, m.nq))
+    with pytest.raises(MjstampError, match=f"geom id 5 is not in the model; valid: two "
+                                           f"different geoms, ids 0 to {m.ngeom - 1}"):
+        kinematics.touching(m, qpos, [(1, 5)])
+    with pytest.raises(MjstampError, match="geom id 1000000 is not in the model"):
+        kinematics.touching(m, qpos, [(1000000, 1)])
+    with pytest.raises(MjstampError, match="cannot touch itself; valid: two different geoms"):
+        kinematics.touching(m, qpos, [(1, 1)])
+    with pytest.raises(MjstampError, match=f"qpos of shape \\(2, 3\\).*valid: \\(..., {m.nq}\\)"):
+        kinematics.touching(m, np.zeros((2, 3)), [(1, 2)])
+
+
+def test_rows_slice_the_replay(tiny_xml):
+    """`Replay.rows` is the replay of those plans alone, as a fresh replay computes it."""
+    problem = _task(tiny_xml, "sphere").build()
+    theta = _shots(6)
+    replay = verify.simulate_c(problem, theta)
+    idx = [3, 0]
+    part, fresh = replay.rows(idx), verify.simulate_c(problem, theta[idx])
+    for field in fresh.traj:
+        np.testing.assert_allclose(part.traj[field], fresh.traj[field], rtol=0, atol=1e-12)
+    for pair in fresh.touch:
+        np.testing.assert_array_equal(part.touch[pair], fresh.touch[pair])
+    np.testing.assert_array_equal(part._near, fresh._near)
+    assert part.symbol_disagreements().tolist() == [False, False]
 
 
 # Every geom type MuJoCo C collides, each on its own free body, over a plane and a

@@ -3,9 +3,9 @@
 A plan's contact symbols are read off its replay: whether each symbol's geom
 pair touches at each state. `verify.Replay` asks MuJoCo C
 (`mjstamp.kinematics.touching`: `mj_kinematics` once per state, then
-`mj_geomDistance` at zero margin per pair); it used to compute the JAX signed
-distance of every pair on MJX kinematics, which costs 0.1 ms or more per state
-for a curved pair and does not exist for some (cylinder-box, cylinder-mesh).
+`mj_geomDistance` at zero margin per pair); the JAX signed distance of a pair
+on MJX kinematics, measured beside it, costs 0.1 ms or more per state for a
+curved pair and does not exist for some (cylinder-box, cylinder-mesh).
 
 Per geom pair, on a two-body model (both geoms on free joints), states whose
 second geom sits at a random direction and offset within 1.5 times the sum of

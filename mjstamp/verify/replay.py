@@ -5,13 +5,14 @@ A `Replay` carries the states of n plans, the poses the planner reads off them
 geom pairs of the task's symbols touch at each state, as MuJoCo C's own
 colliders say (`kinematics.touching`), all computed once when it is made;
 `decode`, success predicates and action rules read those. The JAX signed
-distances stay with the gradient model (the symbols' soft indicators); a
+distances belong to the gradient model (the symbols' soft indicators); a
 Replay computes them only when asked (`signed_distance`, and
 `symbol_disagreements`, which counts the plans they would decode otherwise).
 """
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import jax
@@ -29,8 +30,15 @@ from mjstamp.tasks.problem import FIELDS, Decoded, Poses, Rollout, as_problem
 SLACK = 1e-3
 """Where `Replay` asks MuJoCo C whether a pair touches: at the states whose distance
 bound (`scenes.distance.make_distance_bound`, from MJX kinematics in the scene's
-precision) is at most SLACK times the scene's size (`Scene.length_scale`): far
-above float32's rounding of a pose, so the bound never hides a contact C sees."""
+precision) is at most SLACK times the scene's size (`Scene.length_scale`) plus
+ROUNDING float epsilons of the two geoms' distances from the origin (`poses`
+subtracts that part from the bound, state by state). The first term covers the
+rounding of the geoms' orientations over their extent, the second that of their
+positions, which grows with their distance from the origin; so the bound never
+hides a contact C sees, in float32 as in float64, wherever the scene is."""
+
+ROUNDING = 64
+"""Float epsilons, per metre of the geoms' distances from the origin, in `SLACK`."""
 
 
 class Replay(Poses):
@@ -58,20 +66,28 @@ class Replay(Poses):
         traj, bounds = poses(problem, self.qpos)
         states = {"qpos": self.qpos, "qvel": self.qvel}
         self.traj = {**{k: v for k, v in states.items() if v is not None}, **traj}
-        pairs = problem.contact_pairs()
+        self._pairs = problem.contact_pairs()
         slack = SLACK * self.scene.length_scale
         # (n, T, k): where the bound leaves contact possible; C is asked there only.
-        self._near = np.stack([bounds[p] <= slack for p in pairs], axis=-1) if pairs else (
-            np.zeros((*self.qpos.shape[:2], 0), bool))
-        touch = kinematics.touching(self.scene.m, self.qpos, pairs, self._near)
-        self.touch = {p: touch[..., i] for i, p in enumerate(pairs)}
+        # N.B. "not > slack", so that a NaN bound (a state that blew up) asks C too.
+        self._near = (np.stack([~(bounds[p] > slack) for p in self._pairs], axis=-1)
+                      if self._pairs else np.zeros((*self.qpos.shape[:2], 0), bool))
+        touch = kinematics.touching(self.scene.m, self.qpos, self._pairs, self._near)
+        self.touch = {p: touch[..., i] for i, p in enumerate(self._pairs)}
         self._distances: dict[tuple[int, int], np.ndarray] | None = None
 
     def rows(self, idx) -> Replay:
-        """The replay of plans `idx` alone (an index array or list)."""
-        return Replay(self.problem, self.qpos[idx], source=self.source,
-                      qvel=None if self.qvel is None else self.qvel[idx],
-                      ctrl=None if self.ctrl is None else self.ctrl[idx])
+        """The replay of plans `idx` alone (an index array, list or mask), sliced, not redone."""
+        out = copy.copy(self)
+        out.qpos = self.qpos[idx]
+        out.qvel = None if self.qvel is None else self.qvel[idx]
+        out.ctrl = None if self.ctrl is None else self.ctrl[idx]
+        out.traj = {k: v[idx] for k, v in self.traj.items()}
+        out._near = self._near[idx]
+        out.touch = {p: t[idx] for p, t in self.touch.items()}
+        out._distances = (None if self._distances is None
+                          else {p: v[idx] for p, v in self._distances.items()})
+        return out
 
     @property
     def xpos(self) -> np.ndarray:
@@ -85,14 +101,17 @@ class Replay(Poses):
 
     def _key(self, geom1: str | int, geom2: str | int, what: str) -> tuple[int, int]:
         """The pair's key in `touch`, or one line naming it and the pairs a replay holds."""
-        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
-        key = (min(g1, g2), max(g1, g2))
+        key = kinematics.pair_key(self.scene.geom(geom1), self.scene.geom(geom2))
         if key not in self.touch:
             m = self.scene.m
-            valid = [f"{m.geom(a).name or a}-{m.geom(b).name or b}" for a, b in self.touch]
+
+            def label(g):
+                return repr(m.geom(g).name) if m.geom(g).name else f"#{g}"
+
+            valid = [f"{label(a)}-{label(b)}" for a, b in self._pairs]
             raise MjstampError(f"a replay holds the {what} of the geom pairs decode reads "
-                               f"(the symbols'); {geom1!r}-{geom2!r} is not one; valid: "
-                               f"{valid_list(valid)}")
+                               f"(the symbols'); {label(key[0])}-{label(key[1])} is not one; "
+                               f"valid: {valid_list(valid)}")
         return key
 
     def contact(self, geom1: str | int, geom2: str | int) -> np.ndarray:
@@ -129,13 +148,19 @@ class Replay(Poses):
         (and `before` pair) have a JAX distance; the distances are computed at
         the states where the bound leaves contact possible (elsewhere both say
         apart), so the check costs a fraction of a full decode by distances.
+        N.B. the first call for a declaration and precision compiles MJX
+        kinematics with every relaxed pair's JAX distance (`_distances_fn`: no
+        compiled function of the solve computes them on states; seconds on a
+        CPU, about 15 s for the cans task), and each new power of two of near
+        states compiles again (`_batched`); a caller that needs it for a few
+        plans takes `rows` first.
         """
         problem, (n, T) = self.problem, self.qpos.shape[:2]
         compared = [k for k, c in enumerate(problem.contacts) if problem.relaxes(c)]
         if not compared:
             return np.zeros(n, bool)
         fn, pairs = _distances_fn(problem)
-        near = self._near[..., [list(self.touch).index(p) for p in pairs]].any(-1).reshape(-1)
+        near = self._near[..., [self._pairs.index(p) for p in pairs]].any(-1).reshape(-1)
         rows = np.flatnonzero(near)
         touch = {p: np.zeros(n * T, bool) for p in pairs}
         if len(rows):
@@ -146,7 +171,7 @@ class Replay(Poses):
         apart = np.zeros((n, T), bool)
 
         def jax_contact(g1, g2):  # N.B. a pair without a distance: its symbols are not compared
-            return touch.get((min(g1, g2), max(g1, g2)), apart)
+            return touch.get(kinematics.pair_key(g1, g2), apart)
 
         c_bits = problem.symbol_bits(self.contact, n, T)[:, compared]
         jax_bits = problem.symbol_bits(jax_contact, n, T)[:, compared]
@@ -168,39 +193,54 @@ def _kinematics(problem):
     return lambda qpos: mjx.kinematics(scene.mx, d0.replace(qpos=qpos))
 
 
-def _kinematics_fn(problem):
-    """jit(vmap): qpos (B, nq) -> body, site positions and the pairs' distance bounds."""
+def _pair_state_fn(cache: dict, problem, make, outputs):
+    """jit(vmap): qpos (B, nq) -> outputs(d, pairs, (k,) values), memoised in `cache`.
+
+    `make()` gives the pairs and their functions of (geom_xpos, geom_xmat);
+    `d` is the `mjx.Data` after kinematics. Returns (the function, pairs).
+    """
     key = (problem.fingerprint, problem.scene.dtype)
-    if key not in _KINEMATICS:
+    if key not in cache:
         kinematics_one = _kinematics(problem)
-        pairs = problem.contact_pairs()
-        fns = [make_distance_bound(problem.scene.m, *p) for p in pairs]
+        pairs, fns = make()
 
         def one(qpos):
             d = kinematics_one(qpos)
-            bound = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else (
+            values = jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns else (
                 jnp.zeros(0, qpos.dtype))
-            return d.xpos, d.site_xpos, bound
+            return outputs(d, pairs, values)
 
-        _KINEMATICS[key] = (jax.jit(jax.vmap(one)), pairs)
-    return _KINEMATICS[key]
+        cache[key] = (jax.jit(jax.vmap(one)), pairs)
+    return cache[key]
+
+
+def _kinematics_fn(problem):
+    """jit(vmap): qpos (B, nq) -> body, site positions and the pairs' distance bounds.
+
+    Each bound less the rounding its positions allow (`SLACK`'s second term).
+    """
+    def make():
+        pairs = problem.contact_pairs()
+        return pairs, [make_distance_bound(problem.scene.m, *p) for p in pairs]
+
+    def outputs(d, pairs, bound):
+        if pairs:
+            eps = jnp.finfo(bound.dtype).eps
+            norms = jnp.linalg.norm(d.geom_xpos, axis=-1)
+            reach = jnp.stack([norms[a] + norms[b] for a, b in pairs])
+            bound = bound - ROUNDING * eps * reach
+        return d.xpos, d.site_xpos, bound
+
+    return _pair_state_fn(_KINEMATICS, problem, make, outputs)
 
 
 def _distances_fn(problem):
     """jit(vmap): qpos (B, nq) -> (k,) JAX signed distances of the decode's pairs that have one."""
-    key = (problem.fingerprint, problem.scene.dtype)
-    if key not in _DISTANCES:
-        kinematics_one = _kinematics(problem)
+    def make():
         pairs = [p for p in problem.contact_pairs() if problem.has_distance(*p)]
-        fns = [problem.distance_fn(*p) for p in pairs]
+        return pairs, [problem.distance_fn(*p) for p in pairs]
 
-        def one(qpos):
-            d = kinematics_one(qpos)
-            return (jnp.stack([f(d.geom_xpos, d.geom_xmat) for f in fns]) if fns
-                    else jnp.zeros(0, qpos.dtype),)
-
-        _DISTANCES[key] = (jax.jit(jax.vmap(one)), pairs)
-    return _DISTANCES[key]
+    return _pair_state_fn(_DISTANCES, problem, make, lambda d, pairs, values: (values,))
 
 
 def _batched(fn, problem, qpos: np.ndarray, chunk: int = 65536) -> list[np.ndarray]:
@@ -233,7 +273,8 @@ def poses(problem, qpos: np.ndarray, chunk: int = 65536):
     Returns:
       ({"xpos": (n, T, nbody, 3), "site_xpos": (n, T, nsite, 3)},
       {(g1, g2): (n, T) distance bound} for `Problem.contact_pairs`: where it is
-      > 0 the pair is apart (`scenes.distance.make_distance_bound`)).
+      > 0 the pair is apart (`scenes.distance.make_distance_bound`, less the
+      rounding of the geoms' positions: `SLACK`)).
     """
     if len(qpos) == 0 or qpos.shape[1] == 0:
         raise MjstampError(f"a replay needs at least one plan and one step; got qpos of "
