@@ -173,7 +173,7 @@ def summarize(result, coverage: dict | None = None) -> dict:
         "distinct_verified_task_plans": len(found),
         "distinct_verified_codes": len(codes),
         "verified_codes": codes,
-        # Final plans the JAX signed distances decode otherwise than MuJoCo C (which decides).
+        # Returned plans the JAX signed distances decode otherwise than MuJoCo C (which decides).
         "symbol_disagreements": result.symbol_disagreements,
         "fidelity": result.fidelity,
         "screen": result.screen,
