@@ -68,13 +68,21 @@ def _weight(name: str, value) -> None:
         raise MjstampError(f"{name}={value!r} must be a finite number >= 0")
 
 
-def _setup(task, config, seed: int, starts: int) -> tuple[Problem, SolveConfig]:
-    """The problem on its calibrated gradient model, and the solve settings it uses."""
+def _setup(task, config, seed: int, starts: int, *,
+           soft_symbols: bool = False) -> tuple[Problem, SolveConfig]:
+    """The problem on its calibrated gradient model, and the solve settings it uses.
+
+    `soft_symbols`: the method reads every symbol's soft indicator, so a task
+    with a symbol the gradient model cannot relax is refused at once
+    (`Problem.check_relaxed`), before calibrating.
+    """
     from mjstamp import solve as solve_mod  # noqa: PLC0415 - solve imports much
 
     _integer("seed", seed, 0)
     _integer("starts", starts, 1)
     problem = solve_mod.as_problem(task)
+    if soft_symbols:
+        problem.check_relaxed()
     cfg = config if isinstance(config, SolveConfig) else SolveConfig.from_dict(config)
     if cfg.calibration.enabled:
         theta = np.asarray(problem.init(jax.random.key(seed), max(starts, 8)), np.float64)
@@ -167,7 +175,7 @@ def run_enumerate(task, *, target: int | None = None, cap_s: float = 600.0, seed
     """
     started = time.perf_counter()
     _weight("symbol_weight", symbol_weight)
-    problem, cfg = _setup(task, config, seed, starts)
+    problem, cfg = _setup(task, config, seed, starts, soft_symbols=True)
     cands = candidates(problem)
     iters = _iters(cfg, iters, check_every)
     sgd = _SGD(problem, cfg, starts, symbol_weight=symbol_weight, block_weight=0.0)
@@ -223,7 +231,7 @@ def run_blocking(task, *, target: int | None = None, cap_s: float = 600.0, seed:
     """
     started = time.perf_counter()
     _weight("block_weight", block_weight)
-    problem, cfg = _setup(task, config, seed, starts)
+    problem, cfg = _setup(task, config, seed, starts, soft_symbols=True)
     iters = _iters(cfg, iters, check_every)
     sgd = _SGD(problem, cfg, starts, symbol_weight=0.0, block_weight=block_weight)
     tracker = Tracker(problem, target, cap_s, start=started)

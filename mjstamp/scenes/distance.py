@@ -1162,6 +1162,10 @@ SUPPORTED_PAIRS: tuple[tuple[str, str], ...] = tuple(
 """The supported (type, type) pairs by name; either order works."""
 
 
+class UnsupportedPairError(MjstampError):
+    """A pair of geom types without a JAX signed distance (not in `SUPPORTED_PAIRS`)."""
+
+
 def _supported_list() -> str:
     return ", ".join(f"{a}-{b}" for a, b in SUPPORTED_PAIRS)
 
@@ -1171,7 +1175,7 @@ def _pair_fn(type1: int, type2: int, what1: str, what2: str):
     swap = type1 > type2
     key = (type2, type1) if swap else (type1, type2)
     if key not in _PAIRS:
-        raise MjstampError(
+        raise UnsupportedPairError(
             f"signed distance between {what1} and {what2} is not supported; "
             f"supported pairs: {_supported_list()}"
         )

@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError
-from mjstamp.scenes.distance import make_distance_fn
+from mjstamp.scenes.distance import UnsupportedPairError, make_distance_fn
 
 
 class Kind(enum.StrEnum):
@@ -120,8 +120,14 @@ def joint_width(joint_type: int, kind: str) -> int:
 
 
 def distance_fn(m: mujoco.MjModel, task: str, g1: int, g2: int) -> Callable:
-    """The signed distance function of a geom pair, or one line naming the task and pair."""
+    """The signed distance function of a geom pair, or one line naming the task and pair.
+
+    Raises:
+      UnsupportedPairError: a pair of geom types without a JAX distance.
+      MjstampError: any other reason (an unknown geom, a mesh without a hull).
+    """
     try:
         return make_distance_fn(m, g1, g2)
     except (ValueError, KeyError) as e:
-        raise MjstampError(f"task {task!r}: {' '.join(str(e).split())}") from None
+        kind = UnsupportedPairError if isinstance(e, UnsupportedPairError) else MjstampError
+        raise kind(f"task {task!r}: {' '.join(str(e).split())}") from None

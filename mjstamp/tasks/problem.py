@@ -30,10 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjstamp import relax, svgd
+from mjstamp import kinematics, relax, svgd
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
-from mjstamp.scenes.distance import make_distance_fn
+from mjstamp.scenes.distance import UnsupportedPairError, make_distance_fn
 from mjstamp.scenes.rollout import set_columns
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable, distance_fn
@@ -97,8 +97,7 @@ class Rollout(Poses):
 
     def signed_distance(self, geom1: str | int, geom2: str | int) -> jax.Array:
         """(n, T) signed distance between two geoms (negative in penetration)."""
-        g1, g2 = self.scene.geom(geom1), self.scene.geom(geom2)
-        key = (min(g1, g2), max(g1, g2))
+        key = kinematics.pair_key(self.scene.geom(geom1), self.scene.geom(geom2))
         if key not in self._sd:
             fn = self.problem.distance_fn(*key)
             over_time = jax.vmap(jax.vmap(fn))
@@ -275,9 +274,9 @@ class Problem:
         """Signed distance function of a geom pair (see scenes.distance), memoised.
 
         Raises:
-          MjstampError: a pair of geom types without a JAX distance (one line).
+          UnsupportedPairError: a pair of geom types without a JAX distance (one line).
         """
-        key = (min(g1, g2), max(g1, g2))
+        key = kinematics.pair_key(g1, g2)
         if key not in self.distance_fns:
             # N.B. a memo, not state: the function of a pair never changes.
             self.distance_fns[key] = distance_fn(self.scene.m, self.name, *key)  # type: ignore[index]
@@ -287,7 +286,7 @@ class Problem:
         """Whether a geom pair has a JAX signed distance (`distance_fn` gives one)."""
         try:
             self.distance_fn(g1, g2)
-        except MjstampError:
+        except UnsupportedPairError:
             return False
         return True
 
@@ -295,7 +294,8 @@ class Problem:
         """Whether the gradient model relaxes a symbol: its pairs have JAX distances.
 
         Every symbol decodes from MuJoCo C; only these have a soft indicator
-        (App. B-B), which STAMP's log density and kernel read.
+        (App. B-B), which the gradient-based solvers read (STAMP's log density
+        and kernel, the enumerate and blocking baselines).
         """
         return all(self.has_distance(*pair) for pair in ((contact.geom1, contact.geom2),
                                                          contact.before) if pair is not None)
@@ -317,7 +317,8 @@ class Problem:
                 break
         return (f"task {self.name!r}: symbol {name!r} has no soft indicator in the gradient "
                 f"model, which needs a JAX signed distance: {why}; it decodes from MuJoCo C "
-                "(screen, samplers, verify), but STAMP needs every symbol relaxed")
+                "(screen, verify), so cem, cmaes and random search solve the task, but STAMP and "
+                "the enumerate and blocking baselines read every symbol's soft indicator")
 
     def check_relaxed(self) -> None:
         """Raises the one line of the first symbol the gradient model cannot relax, if any."""

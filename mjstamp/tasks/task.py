@@ -32,6 +32,7 @@ import numpy as np
 from mjstamp import kinematics, svgd
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
+from mjstamp.scenes.distance import UnsupportedPairError
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks import costs
 from mjstamp.tasks import fingerprint as fp
@@ -514,18 +515,20 @@ class Task:
         """Checks (at declaration) that MuJoCo C collides a symbol's geom pair.
 
         Its JAX signed distance, the symbol's soft indicator in the gradient
-        model, is memoised where there is one; a pair without (cylinder-box,
-        a mesh against a cylinder) still decodes from C (`Problem.relaxes`).
+        model, is memoised where there is one; a pair of types without one
+        (cylinder-box, a mesh against a cylinder) still decodes from C
+        (`Problem.relaxes`). Any other error of the distance (a mesh without a
+        convex hull) is raised here.
         """
         try:
             kinematics.check_touch_pair(self.scene.m, g1, g2)
         except MjstampError as e:
             raise MjstampError(f"task {self.name!r}: symbol {symbol!r}: {e}") from None
-        key = (min(g1, g2), max(g1, g2))
+        key = kinematics.pair_key(g1, g2)
         if key not in self._distance_fns:
             try:
                 self._distance_fns[key] = distance_fn(self.scene.m, self.name, *key)
-            except MjstampError:
+            except UnsupportedPairError:
                 pass  # N.B. decoded from C alone; `Problem.unrelaxed_reason` says why
 
     @property
