@@ -40,27 +40,12 @@ examples = _load("examples")
 
 @pytest.fixture(scope="module")
 def tasks():
-    """Every suite task, built once (Scene construction puts the MJX model, no compile).
-
-    A task whose symbols need a signed distance this mjstamp lacks (meshes, before
-    mjstamp.scenes.distance covers them) is kept as its error; its tests skip.
-    """
-    out = {}
-    for name, make in suite.SUITE.items():
-        try:
-            out[name] = make()
-        except MjstampError as e:
-            out[name] = e
-    return out
+    """Every suite task, built once (Scene construction puts the MJX model, no compile)."""
+    return {name: make() for name, make in suite.SUITE.items()}
 
 
 def _task(tasks, name):
-    task = tasks[name]
-    if isinstance(task, MjstampError):
-        if "not supported" in str(task):
-            pytest.skip(f"{name}: {task}")
-        raise task
-    return task
+    return tasks[name]
 
 
 def test_suite_has_the_scenes_the_issue_asks_for(tasks):
