@@ -1405,8 +1405,8 @@ def ccd_converged(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
     v1 = _straight(sm.v1, _rigid(o1, sm.v1))
     v2 = _straight(sm.v2, _rigid(o2, sm.v2))
     vert = v1 - v2
-    # 2. where a curved geom's simplex points are one point of its surface sampled at nearby
-    # directions, that geom's support in the converged direction instead (it slides along
+    # 2. where a full sphere's or capsule's simplex points are one point of its surface sampled
+    # at nearby directions, its support in the converged direction instead (it slides over
     # the surface as the normal turns): EPA's face normal, or towards GJK's closest point
     _, fv = project_origin_plane(vert[2], vert[1], vert[0])
     gx = lincomb4(subdistance(n, vert), n, vert)
