@@ -30,12 +30,12 @@ import numpy as np
 import optax
 
 from mjstamp import checkpoint as checkpoint_mod
-from mjstamp import parallel, results, seeding, svgd, verify
+from mjstamp import colliders, parallel, results, seeding, svgd, verify
 from mjstamp.config import SolveConfig
 from mjstamp.errors import FidelityWarning, MjstampError
 from mjstamp.fileio import write_atomic
 from mjstamp.progress import QUIET, Progress, ProgressLike
-from mjstamp.scenes import contacts, fidelity, uncertainty
+from mjstamp.scenes import fidelity, uncertainty
 from mjstamp.tasks import Problem, Task, as_problem
 from mjstamp.tracecache import cached_jit
 from mjstamp.version import __version__
@@ -210,8 +210,8 @@ def problem_jit(problem: Problem):
     # N.B. robust planning's draws and the cost scale are constants of the trace: part of the key.
     consts = "" if problem.robust is None else f" robust={problem.robust.key()}"
     consts += "" if problem.cost_scale == 1 else f" cost_scale={problem.cost_scale!r}"
-    # N.B. the collision table is read at trace time (MJX's own inside contacts.mjx_own).
-    consts += f" collisions={contacts.table_version()}"
+    # N.B. the collision table is read at trace time (MJX's own inside colliders.mjx_own).
+    consts += f" collisions={colliders.table_version()}"
 
     def jit(fn, name: str, *example):
         # N.B. the label (the name's first word) names the function in compile reports.

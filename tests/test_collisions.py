@@ -7,9 +7,9 @@ check may not turn away a model MJX builds, nor let through one it does not.
 import mujoco
 import pytest
 
+from mjstamp._mjx import mjx
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
-from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.collisions import check_collidable
 
 # A cylinder puck sliding between rails of rough ground (height fields): neither
@@ -75,9 +75,9 @@ def test_cylinder_puck_on_height_field_rails_is_one_line(tmp_path):
 def test_ported_pairs_are_collided():
     """cylinder-box, which MJX 3.17 lacks, builds: MuJoCo C's routine is ported."""
     xml = _table().replace('type="hfield" hfield="rough"', 'type="box" size="1 0.05 0.05"')
-    from mjstamp.scenes import contacts
+    from mjstamp import colliders
 
-    assert (5, 6) in contacts.PORTED
+    assert (5, 6) in colliders.PORTED
     assert Scene(xml).m.ngeom == 4
 
 

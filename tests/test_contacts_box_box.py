@@ -1,4 +1,4 @@
-"""The port of MuJoCo C's box-box collider (contacts.box_box) against C and its gradients."""
+"""The port of MuJoCo C's box-box collider (colliders.box_box) against C and its gradients."""
 
 import jax
 import jax.numpy as jnp
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from mujoco.mjx._src.collision_types import GeomInfo
 
-from mjstamp.scenes import contacts
-from mjstamp.scenes.contacts import box_box, compare
+from mjstamp import colliders
+from mjstamp.colliders import box_box, compare
 
 BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
 TOL = 1e-9
@@ -18,7 +18,7 @@ N = 300
 
 @pytest.fixture(scope="module")
 def pm():
-    contacts.patch_collisions()
+    colliders.patch_collisions()
     return compare.pair_model(BOX, BOX)
 
 
@@ -31,7 +31,7 @@ def _check(pm, draws):
 
 
 def test_registered():
-    assert contacts.PORTED[(BOX, BOX)] is box_box.box_box
+    assert colliders.PORTED[(BOX, BOX)] is box_box.box_box
     assert box_box.box_box.ncon == 8
 
 

@@ -1,4 +1,4 @@
-"""The port of C's capsule-box collider (contacts.capsule_box) against C, and its gradients."""
+"""The port of C's capsule-box collider (colliders.capsule_box) against C, and its gradients."""
 
 import functools
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from mujoco.mjx._src.collision_types import GeomInfo
 
-from mjstamp.scenes import contacts
-from mjstamp.scenes.contacts import capsule_box, compare
+from mjstamp import colliders
+from mjstamp.colliders import capsule_box, compare
 
 CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
 BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
@@ -21,7 +21,7 @@ N = 300
 
 @pytest.fixture(scope="module")
 def pm():
-    contacts.patch_collisions()
+    colliders.patch_collisions()
     return compare.pair_model(CAPSULE, BOX)
 
 
@@ -34,7 +34,7 @@ def _check(pm, draws):
 
 
 def test_registered():
-    assert contacts.PORTED[(CAPSULE, BOX)] is capsule_box.capsule_box
+    assert colliders.PORTED[(CAPSULE, BOX)] is capsule_box.capsule_box
     # C's routine calls its sphere-box at most twice (mj_maxContact reserves 4).
     assert capsule_box.capsule_box.ncon == 2
 
@@ -102,7 +102,7 @@ def test_port_matches_c_on_exact_ties(pm):
     args = [jnp.asarray(np.stack(a)) for a in zip(*inputs, strict=True)]
     cltype, secondpos, (dist, pos, frame) = jax.device_get(_batched()(*args))
     for i, c in enumerate(want):
-        used = dist[i] < contacts.FAR
+        used = dist[i] < colliders.FAR
         got = np.concatenate([dist[i][:, None], pos[i], frame[i].reshape(-1, 9)], axis=1)[used]
         assert len(got) == len(c), (i, got[:, 0], c[:, :1])
         if len(c):

@@ -1,4 +1,4 @@
-"""MuJoCo C's general convex collisions in MJX (contacts.convex) against the C engine.
+"""MuJoCo C's general convex collisions in MJX (colliders.convex) against the C engine.
 
 Each pair is collided by MuJoCo C (mj_collision) and by MJX with the ported
 colliders on random poses (`compare.run`), and must give the same contacts:
@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from mujoco.mjx._src.collision_types import GeomInfo
 
-from mjstamp.scenes import contacts
-from mjstamp.scenes.contacts import compare, convex, gjk
+from mjstamp import colliders
+from mjstamp.colliders import compare, convex, gjk
 
 GJK_PAIRS = ["capsule-cylinder", "cylinder-cylinder", "cylinder-box", "sphere-ellipsoid",
              "capsule-ellipsoid", "ellipsoid-ellipsoid", "ellipsoid-cylinder", "ellipsoid-box",
@@ -30,10 +30,10 @@ TOL = 1e-9
 
 @pytest.fixture(scope="module", autouse=True)
 def _patched():
-    contacts.patch_collisions()
-    contacts.exact_meshes()
+    colliders.patch_collisions()
+    colliders.exact_meshes()
     yield
-    contacts.exact_meshes(False)
+    colliders.exact_meshes(False)
 
 
 def test_mesh_pairs_mjx_collides_keep_mjx_by_default():
@@ -42,18 +42,18 @@ def test_mesh_pairs_mjx_collides_keep_mjx_by_default():
 
     table = collision_driver._COLLISION_FUNC  # pylint: disable=protected-access
     opt_in = {(2, 7), (3, 7), (6, 7), (7, 7)}
-    contacts.exact_meshes(False)
+    colliders.exact_meshes(False)
     try:
-        before = contacts.table_version()
+        before = colliders.table_version()
         for pair in opt_in:
-            assert table[pair] is not contacts.PORTED[pair]
-            assert not contacts.is_exact(*pair)
+            assert table[pair] is not colliders.PORTED[pair]
+            assert not colliders.is_exact(*pair)
         for pair in ((5, 7), (4, 7), (0, 7), (5, 6)):  # MJX has none, or it is plane-mesh
-            assert table[pair] is contacts.PORTED[pair] and contacts.is_exact(*pair)
+            assert table[pair] is colliders.PORTED[pair] and colliders.is_exact(*pair)
     finally:
-        contacts.exact_meshes()
-    assert contacts.table_version() != before
-    assert all(table[pair] is contacts.PORTED[pair] and contacts.is_exact(*pair)
+        colliders.exact_meshes()
+    assert colliders.table_version() != before
+    assert all(table[pair] is colliders.PORTED[pair] and colliders.is_exact(*pair)
                for pair in opt_in)
 
 
@@ -83,7 +83,7 @@ def test_contact_slots_follow_c():
         m = compare.pair_model(t1, t2).m
         for has_margin in (0, 1):
             assert mujoco.mj_maxContact(m, 0, 1, has_margin) == ncon, pair
-        assert contacts.PORTED[(t1, t2)].ncon == ncon, pair
+        assert colliders.PORTED[(t1, t2)].ncon == ncon, pair
     assert convex.max_contacts(5, 6, int(mujoco.mjtDisableBit.mjDSBL_MULTICCD)) == 1
 
 
@@ -148,7 +148,7 @@ def test_gradients_match_central_differences(pair):
     central differences at eps and 2 eps agree (both within one piece).
     """
     pm, poses = _poses(pair, 24, seed=3)
-    fn = contacts.PORTED[compare.parse_pair(pair)].pair_fn
+    fn = colliders.PORTED[compare.parse_pair(pair)].pair_fn
     f = _objective(fn, convex.kind_of(pm.m, 0), convex.kind_of(pm.m, 1))
     val = jax.jit(f)
     grad = jax.jit(jax.grad(f))
@@ -197,7 +197,7 @@ def test_converged_gradients_match_central_differences(pair):
     t1, t2 = compare.parse_pair(pair)
     assert {t1, t2} <= gjk.CONVERGED_KINDS
     pm, poses = _poses(pair, 24, seed=3)
-    f = _parts(contacts.PORTED[(t1, t2)].pair_fn, convex.kind_of(pm.m, 0),
+    f = _parts(colliders.PORTED[(t1, t2)].pair_fn, convex.kind_of(pm.m, 0),
                convex.kind_of(pm.m, 1))
     val = jax.jit(f)
     jac = jax.jit(jax.jacrev(f))
@@ -238,7 +238,7 @@ def _aligned(pair):
 @pytest.mark.parametrize("pair", ["cylinder-box", "ellipsoid-ellipsoid"])
 def test_gradients_finite_on_degenerate_poses(pair):
     t1, t2, poses = _aligned(pair)
-    fn = contacts.PORTED[(t1, t2)].pair_fn
+    fn = colliders.PORTED[(t1, t2)].pair_fn
     grad = jax.jit(jax.grad(_objective(fn, gjk.Kind(t1), gjk.Kind(t2))))
     for pose in poses:
         g = np.asarray(grad(jnp.zeros(4), *(jnp.asarray(a) for a in pose)))

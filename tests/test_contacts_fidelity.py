@@ -3,14 +3,14 @@
 A crate tossed onto the floor (plane-box contacts, MuJoCo's defaults): with
 MJX's own plane-box function the rollouts part from C at the first contact,
 and `fidelity.judge` must name the pair; with C's routine ported
-(`mjstamp.scenes.contacts`) they agree to rounding.
+(`mjstamp.colliders`) they agree to rounding.
 """
 
 import numpy as np
 import pytest
 
-from mjstamp import verify
-from mjstamp.scenes import Scene, contacts, fidelity
+from mjstamp import colliders, verify
+from mjstamp.scenes import Scene, fidelity
 from mjstamp.scenes.rollout import replay
 
 DROP = """
@@ -53,7 +53,7 @@ def test_ported_plane_box_follows_c_and_mjx_own_parts_at_the_named_pair():
     assert ported.judged_by == "tolerance" and ported.p95_m < 1e-10  # rounding: 1e-14 seen
     assert ported.approximate == ()
     own_scene = Scene(DROP, gradient="implicit", iterations=100)
-    with contacts.mjx_own():
+    with colliders.mjx_own():
         own = _judge(own_scene, qpos0, qvel0)
         msg = own.message("drop", scene.m, HORIZON)
     # MJX's own plane-box parts from C by centimetres (0.08 m seen).

@@ -1,4 +1,4 @@
-"""C's primitive colliders in MJX (mjstamp.scenes.contacts.primitive) against MuJoCo C.
+"""C's primitive colliders in MJX (mjstamp.colliders.primitive) against MuJoCo C.
 
 Per pair: the installed table's contacts against C's on the harness's random
 draws (`compare.run`) and on hand-made deep and degenerate poses the draws do
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from mujoco.mjx._src.collision_types import GeomInfo
 
-from mjstamp.scenes import contacts
-from mjstamp.scenes.contacts import compare, primitive
+from mjstamp import colliders
+from mjstamp.colliders import compare, primitive
 
 PORTED = ["plane-capsule", "plane-cylinder", "plane-box", "sphere-sphere", "sphere-capsule",
           "sphere-cylinder", "sphere-box", "capsule-capsule"]
@@ -33,17 +33,17 @@ _Y90 = np.array([np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0])
 
 @pytest.fixture(scope="module", autouse=True)
 def _patched():
-    contacts.patch_collisions()
+    colliders.patch_collisions()
 
 
 def _fn(name: str):
-    return contacts.PORTED[compare.parse_pair(name)]
+    return colliders.PORTED[compare.parse_pair(name)]
 
 
 @pytest.mark.parametrize("name", PORTED)
 def test_port_gives_c_contacts_on_random_draws(name):
     t1, t2 = compare.parse_pair(name)
-    assert contacts.PORTED[(t1, t2)] is getattr(primitive, name.replace("-", "_"))
+    assert colliders.PORTED[(t1, t2)] is getattr(primitive, name.replace("-", "_"))
     if name == "capsule-capsule":
         return _capsules_on_random_draws()
     report = compare.run(t1, t2, 300, seed=7)
@@ -79,7 +79,7 @@ def _capsules_on_random_draws():
 @pytest.mark.parametrize("name", MJX_OWN)
 def test_mjx_own_gives_c_contacts_on_random_draws(name):
     t1, t2 = compare.parse_pair(name)
-    assert (t1, t2) not in contacts.PORTED
+    assert (t1, t2) not in colliders.PORTED
     report = compare.run(t1, t2, 300, seed=7)
     assert report.contacts_c > 250
     assert report.within(TOL), report

@@ -20,7 +20,8 @@ import sys
 import mujoco
 import pytest
 
-from mjstamp.scenes import Scene, contacts
+from mjstamp import colliders
+from mjstamp.scenes import Scene
 from mjstamp.scenes.check import check_scene
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
@@ -29,10 +30,10 @@ from benchmarks.perf import rollout_gradients  # noqa: E402 - after the path set
 
 @pytest.fixture()
 def exact_meshes():
-    contacts.patch_collisions()
-    contacts.exact_meshes()
+    colliders.patch_collisions()
+    colliders.exact_meshes()
     yield
-    contacts.exact_meshes(False)
+    colliders.exact_meshes(False)
 
 
 def test_the_rock_meets_the_box():

@@ -2,7 +2,7 @@
 
 For every geom pair MuJoCo C collides (height fields and SDFs aside), draws
 random sizes, relative poses and margins around contact
-(`mjstamp.scenes.contacts.compare.draw`: penetrating, touching, separated by
+(`mjstamp.colliders.compare.draw`: penetrating, touching, separated by
 less than the margin, a few misses, a fifth axis-aligned) and collides each
 draw in MuJoCo C and in MJX, once with MJX's own collision function and once
 with the installed table (mjstamp's ports of C's routines where there are
@@ -48,10 +48,10 @@ def _timed(pm, draws, grad: bool = False) -> float:
     import jax
     import jax.numpy as jnp
 
-    from mjstamp.scenes import contacts
-    from mjstamp.scenes.contacts import compare
+    from mjstamp import colliders
+    from mjstamp.colliders import compare
 
-    fn = compare.mjx_collide(pm.xml, contacts.table_version())
+    fn = compare.mjx_collide(pm.xml, colliders.table_version())
     args = [jnp.asarray(a) for a in (draws.size, draws.rbound, draws.margin, draws.gap,
                                      draws.qpos, *compare.c_poses(pm, draws))]
     if grad:
@@ -77,8 +77,8 @@ def measure(name: str, draws: int, seed: int, grad: bool = False) -> dict:
     """One pair's row: C's contact count, then per engine the comparison and the cost."""
     import numpy as np
 
-    from mjstamp.scenes import contacts
-    from mjstamp.scenes.contacts import compare
+    from mjstamp import colliders
+    from mjstamp.colliders import compare
 
     pm = compare.pair_model(*compare.parse_pair(name))
     dr = compare.draw(pm, draws, np.random.default_rng(seed))
@@ -88,7 +88,7 @@ def measure(name: str, draws: int, seed: int, grad: bool = False) -> dict:
     for engine in ("installed", "mjx"):
         try:
             if engine == "mjx":
-                with contacts.mjx_own():
+                with colliders.mjx_own():
                     j = compare.mjx_contacts(pm, dr)
                     us = _timed(pm, dr)
                     us_grad = _timed(pm, dr, grad=True) if grad else None
@@ -110,11 +110,11 @@ def measure(name: str, draws: int, seed: int, grad: bool = False) -> dict:
 
 
 def _ported_names() -> set[str]:
-    from mjstamp.scenes import contacts
-    from mjstamp.scenes.contacts import compare
+    from mjstamp import colliders
+    from mjstamp.colliders import compare
 
-    contacts.patch_collisions()
-    return {compare.pair_name(*p) for p in contacts.PORTED}
+    colliders.patch_collisions()
+    return {compare.pair_name(*p) for p in colliders.PORTED}
 
 
 def _line(row: dict) -> str:
@@ -164,10 +164,10 @@ def main(argv: list[str] | None = None) -> int:
     import mjstamp
 
     mjstamp.configure(precision="float64")
-    from mjstamp.scenes import contacts
-    from mjstamp.scenes.contacts import compare
+    from mjstamp import colliders
+    from mjstamp.colliders import compare
 
-    contacts.exact_meshes()
+    colliders.exact_meshes()
 
     names = [p.strip() for p in args.pairs.split(",") if p.strip()]
     for name in names:

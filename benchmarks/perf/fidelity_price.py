@@ -99,8 +99,7 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
     import jax
     import jax.numpy as jnp
 
-    from mjstamp import seeding
-    from mjstamp.scenes import contacts
+    from mjstamp import colliders, seeding
     from mjstamp.solve import SolveConfig, calibrate, mjx_divergence
 
     task = _task(name).build()
@@ -116,7 +115,7 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
         # a Scene memoises its compiled rollouts.
         scene = ported.scene.fresh()
         t = ported.on_scene(scene)
-        block = contacts.mjx_own() if key == "mjx" else contextlib.nullcontext()
+        block = colliders.mjx_own() if key == "mjx" else contextlib.nullcontext()
         try:
             with block:
                 fns[key], row[f"compile_{key}_s"] = _timed(t, theta_j, repeats)
@@ -134,10 +133,10 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
 
 
 def _approximate(problem, *, mjx_own: bool) -> list:
-    from mjstamp.scenes import contacts
+    from mjstamp import colliders
 
-    with contacts.mjx_own() if mjx_own else contextlib.nullcontext():
-        return contacts.approximate_pairs(problem.scene.m)
+    with colliders.mjx_own() if mjx_own else contextlib.nullcontext():
+        return colliders.approximate_pairs(problem.scene.m)
 
 
 def main() -> None:

@@ -143,11 +143,12 @@ KEYS = ("healthy", "faithful", "fd_smooth_particles", "rel_err_median", "rel_err
 
 def measure(name: str, particles: int) -> dict:
     """One scene's row: the check's verdict and numbers."""
-    from mjstamp.scenes import Scene, contacts
+    from mjstamp import colliders
+    from mjstamp.scenes import Scene
     from mjstamp.scenes.check import check_scene
 
     xml, spec = scenes()[name]
-    contacts.exact_meshes()
+    colliders.exact_meshes()
     t0 = time.perf_counter()
     report = check_scene(Scene(xml, name=name), particles=particles, spec=spec)
     return {"scene": name, **{k: report[k] for k in KEYS},

@@ -12,7 +12,7 @@ What it may import: mujoco, mujoco.mjx, jax, numpy, the optional
 `errors`, `fileio` and `kinematics`; never tasks, solvers or figures.
 """
 
-from mjstamp.scenes._mjx import mjx
+from mjstamp._mjx import mjx
 from mjstamp.scenes.rollout import FIELDS, build_rollout, replay
 from mjstamp.scenes.scene import (
     GradOptions,

@@ -1,7 +1,7 @@
 """Up-front checks that MJX 3.17 can build, and collide, a MuJoCo model.
 
 The collision table judged is the one rollouts use: MJX's own, with MuJoCo C's
-colliders ported by `mjstamp.scenes.contacts` in place of MJX's and where MJX
+colliders ported by `mjstamp.colliders` in place of MJX's and where MJX
 has none (cylinder-box).
 
 ``mjx.put_model`` refuses some models that MuJoCo C runs, with a
@@ -26,22 +26,22 @@ from __future__ import annotations
 
 import mujoco
 
+from mjstamp import _mjx  # noqa: F401 - imports mujoco.mjx without its stdout chatter
 from mjstamp.errors import MjstampError, valid_list
-from mjstamp.scenes import _mjx  # noqa: F401 - imports mujoco.mjx without its stdout chatter
 
 
 def _mjx_src():
     """MJX's collision table and enums (`mujoco.mjx._src`, imported once mjx is).
 
-    N.B. imported here, after mjstamp.scenes._mjx: importing `mujoco.mjx._src`
+    N.B. imported here, after mjstamp._mjx: importing `mujoco.mjx._src`
     first would import `mujoco.mjx` and print its chatter to stdout.
     """
     from mujoco.mjx._src import collision_driver, types  # pylint: disable=g-import-not-at-top
 
-    from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+    from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
     # N.B. the table judged is the one rollouts use: MJX's, with C's ported colliders.
-    contacts.patch_collisions()
+    colliders.patch_collisions()
     return collision_driver, types
 
 _MJX = "MJX 3.17"

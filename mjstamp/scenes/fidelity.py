@@ -41,6 +41,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from mjstamp._mjx import model_bytes
 from mjstamp.errors import MjstampError
 from mjstamp.fileio import write_atomic
 from mjstamp.kinematics import poses
@@ -219,13 +220,6 @@ def describe(gradient: str, iterations: int) -> str:
     if gradient == "implicit":
         return f"implicit (up to {iterations} solver iterations)"
     return f"unrolled ({iterations} solver iteration{'s' if iterations != 1 else ''})"
-
-
-def model_bytes(m: mujoco.MjModel) -> bytes:
-    """The compiled model as bytes (mj_saveModel), for fingerprints."""
-    buffer = np.empty(mujoco.mj_sizeModel(m), np.uint8)
-    mujoco.mj_saveModel(m, None, buffer)
-    return buffer.tobytes()
 
 
 def _key(scene, inputs, tolerance, candidates) -> str:
@@ -413,22 +407,22 @@ class Parting:
 
     def describe(self, m: mujoco.MjModel, *, limit: int = 4) -> str:
         """"box-box 'paddle'/'bumper' (12 of 16)", the commonest first; '' when none."""
-        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+        from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
-        parts = [f"{contacts.describe_pair(m, g1, g2)} ({k} of {self.particles})"
+        parts = [f"{colliders.describe_pair(m, g1, g2)} ({k} of {self.particles})"
                  for (g1, g2), k in list(self.pairs.items())[:limit]]
         more = len(self.pairs) - limit
         return ", ".join(parts) + (f" and {more} more" if more > 0 else "")
 
     def as_dict(self, m: mujoco.MjModel) -> dict:
         """JSON view: pairs by name and type."""
-        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+        from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
         return {
             "particles": self.particles,
             "first_step_median": float(np.median(self.steps)) if self.steps else None,
             "threshold_m": self.threshold_m,
-            "pairs": [{**contacts.pair_info(m, g1, g2), "particles": k}
+            "pairs": [{**colliders.pair_info(m, g1, g2), "particles": k}
                       for (g1, g2), k in self.pairs.items()],
         }
 
@@ -504,7 +498,7 @@ class Verdict:
 
     def message(self, scene_name: str, m: mujoco.MjModel, horizon: int) -> str:
         """One line: how MJX compares with C and, where it parts, the pairs responsible."""
-        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+        from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
         head = (f"scene {scene_name!r}: MJX rollouts vs MuJoCo C (scene's own solver) p95 "
                 f"{self.p95_m:.2g} m")
@@ -518,21 +512,21 @@ class Verdict:
         approx = [p for p in self.approximate
                   if self.parting is not None and p in self.parting.pairs]
         cause = (f"where MJX collides these pairs differently from C: "
-                 f"{', '.join(contacts.describe_pair(m, *p) for p in approx)}"
+                 f"{', '.join(colliders.describe_pair(m, *p) for p in approx)}"
                  if approx else "MJX collides or integrates something differently")
         return (f"{head} > tolerance {self.tolerance_m:.2g} m and > {chaos}, over {horizon} "
                 f"steps; they part at contacts of {where or 'no geom pair'}; {cause}")
 
     def as_dict(self, m: mujoco.MjModel) -> dict:
         """JSON view."""
-        from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+        from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
         return {
             "median_m": self.median_m, "p95_m": self.p95_m, "tolerance_m": self.tolerance_m,
             "chaos_p95_m": self.chaos_p95_m, "judged_by": self.judged_by,
             "faithful": self.faithful,
             "parting": None if self.parting is None else self.parting.as_dict(m),
-            "approximate_pairs": [contacts.pair_info(m, *p) for p in self.approximate],
+            "approximate_pairs": [colliders.pair_info(m, *p) for p in self.approximate],
         }
 
 
@@ -559,12 +553,12 @@ def judge(scene, qpos0: np.ndarray, qvel0: np.ndarray, ctrl: np.ndarray | None,
       tolerance: metres.
       horizon: T when `ctrl` is None.
     """
-    from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+    from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
     m = scene.m
     div = divergence(tracked_points(m, qpos_mjx), tracked_points(m, qpos_c))
     median, p95 = float(np.median(div)), float(np.percentile(div, 95))
-    approximate = tuple(contacts.approximate_pairs(m))
+    approximate = tuple(colliders.approximate_pairs(m))
     if p95 <= tolerance:
         return Verdict(median, p95, tolerance, None, "tolerance", None, approximate)
     spread = chaos_spread(scene, qpos0, qvel0, ctrl, horizon=horizon)

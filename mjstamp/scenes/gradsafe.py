@@ -76,13 +76,13 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import inspect
-import textwrap
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jp
 import mujoco
+
+from mjstamp import _mjx
 
 __all__ = ["GRADIENTS", "gradient_mode", "patch_mjx", "is_patched", "safe_div", "safe_sqrt"]
 
@@ -221,43 +221,9 @@ _CONSTRAINT_EDITS: dict[str, list[tuple[str, str]]] = {
 
 def rewrite(module, qualname: str, edits: list[tuple[str, str]], *,
             extra: dict[str, object] | None = None) -> Callable:
-    """Returns a copy of ``module.<qualname>`` with textual edits applied.
-
-    Args:
-      module: the module that defines the function.
-      qualname: its name there ("solve", "_LSPoint.create").
-      edits: (old, new) source texts; each old must occur exactly once.
-      extra: names the new source uses, added to the module's globals.
-
-    Raises:
-      RuntimeError: an old text is not found exactly once (MJX changed).
-    """
-    owner, _, name = qualname.rpartition(".")
-    holder = getattr(module, owner) if owner else module
-    fn = inspect.unwrap(getattr(holder, name))
-    fn = getattr(fn, "__func__", fn)  # classmethod -> function
-    src = textwrap.dedent(inspect.getsource(fn))
-    for old, new in edits:
-        n = src.count(old)
-        if n != 1:
-            raise RuntimeError(
-                f"gradsafe: expected exactly one `{old}` in {module.__name__}."
-                f"{qualname}, found {n}; MJX changed, re-audit the patch."
-            )
-        src = src.replace(old, new)
-    if src.startswith("@classmethod"):
-        src = src[len("@classmethod") :].lstrip()
-    # N.B. exec in the solver module's own globals so that every other name the
-    # function uses (jp, math, support, ConeType, ...) resolves exactly as in
-    # the original; only the two safe helpers are added.
-    glb = module.__dict__
-    glb.setdefault("_gs_safe_div", safe_div)
-    glb.setdefault("_gs_safe_sqrt", safe_sqrt)
-    for k, v in (extra or {}).items():
-        glb.setdefault(k, v)
-    loc: dict[str, object] = {}
-    exec(compile(src, f"<gradsafe:{qualname}>", "exec"), glb, loc)  # pylint: disable=exec-used
-    return loc[name]
+    """`mjstamp._mjx.rewrite` with the two safe helpers (`_gs_safe_div`, `_gs_safe_sqrt`)."""
+    helpers = {"_gs_safe_div": safe_div, "_gs_safe_sqrt": safe_sqrt}
+    return _mjx.rewrite(module, qualname, edits, extra={**helpers, **(extra or {})})
 
 
 GRADIENTS = ("unrolled", "implicit")

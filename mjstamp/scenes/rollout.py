@@ -11,11 +11,11 @@ import mujoco
 import mujoco.rollout
 import numpy as np
 
+from mjstamp._mjx import mjx
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.kinematics import poses
 from mjstamp.parallel import local_device
 from mjstamp.scenes import gradsafe
-from mjstamp.scenes._mjx import mjx
 
 # Fields a rollout can return, each of shape (n, T, ...) for steps 1..T.
 STATE_FIELDS = ("qpos", "qvel", "ctrl")

@@ -15,10 +15,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjstamp import colliders
+from mjstamp._mjx import mjx
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.parallel import local_device
-from mjstamp.scenes import contacts, gradsafe
-from mjstamp.scenes._mjx import mjx
+from mjstamp.scenes import gradsafe
 from mjstamp.scenes.collisions import check_collidable
 from mjstamp.scenes.rollout import build_rollout, cast_floats
 
@@ -326,7 +327,7 @@ class Scene:
         self.m, self._label = _load_model(source, assets)
         # N.B. before the check and any trace of mjx.collision: MuJoCo C's own
         # colliders, ported, replace MJX's where MJX computes other contacts.
-        contacts.patch_collisions()
+        colliders.patch_collisions()
         check_collidable(self.m, self._label)
         self.name = name or self.m.names[: self.m.names.index(b"\0")].decode() or (
             Path(source).stem if isinstance(source, (str, Path)) else "scene"

@@ -93,10 +93,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from mjstamp._mjx import mjx
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.parallel import local_device
 from mjstamp.scenes import gradsafe
-from mjstamp.scenes._mjx import mjx
 from mjstamp.scenes.rollout import cast_floats, controls, replay
 
 CHAININGS = ("sweep", "scan", "vjp")

@@ -754,10 +754,11 @@ def fuzz_contacts(n: int, *, seed: int = 0, progress=None) -> dict:
     """
     import mujoco
 
-    from mjstamp.scenes import Scene, contacts
-    from mjstamp.scenes.contacts import compare
+    from mjstamp import colliders
+    from mjstamp.colliders import compare
+    from mjstamp.scenes import Scene
 
-    contacts.exact_meshes()
+    colliders.exact_meshes()
 
     say = progress or (lambda _msg: None)
     rng = np.random.default_rng(seed)

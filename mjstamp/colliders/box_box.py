@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from mjstamp.scenes.contacts import FAR, PORTED, collider, make_frame
+from mjstamp.colliders import FAR, PORTED, collider, make_frame
 
 # engine_collision_box.c, double precision.
 _SEPEPS = 1e-13    # mjBOXBOX_SEPEPS: slack on the separation tests, times the box scale

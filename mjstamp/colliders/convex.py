@@ -34,9 +34,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from mjstamp.scenes import contacts
-from mjstamp.scenes.contacts import gjk
-from mjstamp.scenes.contacts.gjk import (
+from mjstamp import colliders
+from mjstamp.colliders import gjk
+from mjstamp.colliders.gjk import (
     BOX,
     CAPSULE,
     CYLINDER,
@@ -98,7 +98,7 @@ def register_model(m: mujoco.MjModel) -> None:
 
 def _install_put_model_hook() -> None:
     """Wraps mjx.put_model so that every model put on device registers its meshes."""
-    from mjstamp.scenes._mjx import mjx  # pylint: disable=g-import-not-at-top
+    from mjstamp._mjx import mjx  # pylint: disable=g-import-not-at-top
 
     put = mjx.put_model
     if getattr(put, "_mjstamp_meshes", False):
@@ -128,7 +128,7 @@ def _mesh_of(m, mid: int) -> gjk.MeshData:
     va, nv = int(m.mesh_vertadr[mid]), int(m.mesh_vertnum[mid])
     key = _mesh_key(np.asarray(m.mesh_vert)[va:va + nv])
     if key not in _MESHES:
-        raise KeyError("mesh polygons unknown: call mjstamp.scenes.contacts.convex."
+        raise KeyError("mesh polygons unknown: call mjstamp.colliders.convex."
                        "register_model(mj_model) before collecting contacts of this model")
     return _MESHES[key]
 
@@ -193,12 +193,12 @@ def pair_contacts(k1: Kind, k2: Kind, info1, info2, margin, *, ncon: int,
         pos = mul(r.x1 + r.x2, 0.5)
         nrm, _ = gjk.normalize3(r.x1 - r.x2)
         dist = margin + r.dist
-    frame = jax.vmap(contacts.make_frame)(nrm)
+    frame = jax.vmap(colliders.make_frame)(nrm)
     valid = jnp.arange(n) < r.ncon
-    dist = jnp.where(valid, dist, contacts.FAR)
+    dist = jnp.where(valid, dist, colliders.FAR)
     if n < ncon:
         pad = ncon - n
-        dist = jnp.concatenate([dist, jnp.full(pad, contacts.FAR, dist.dtype)])
+        dist = jnp.concatenate([dist, jnp.full(pad, colliders.FAR, dist.dtype)])
         pos = jnp.concatenate([pos, jnp.zeros((pad, 3), pos.dtype)])
         frame = jnp.concatenate([frame, jnp.tile(jnp.eye(3, dtype=pos.dtype), (pad, 1, 1))])
     return dist[:ncon], pos[:ncon], frame[:ncon]
@@ -234,7 +234,7 @@ def _hull_from(verts, pv, nv, k, nsteps):
 
 
 def gjk_multi_area(a, b, c, d):
-    from mjstamp.scenes.contacts import gjk_multi  # pylint: disable=g-import-not-at-top
+    from mjstamp.colliders import gjk_multi  # pylint: disable=g-import-not-at-top
 
     return gjk_multi.area4(a, b, c, d)
 
@@ -300,10 +300,10 @@ def plane_mesh(k2: Kind, info1, info2, margin):
     first = jax.lax.stop_gradient(dist0) <= margin
     keep = keep & first
     order = jnp.argsort(~keep, stable=True)
-    dist = jnp.concatenate([dist0[None], jnp.where(keep[order], dd[order], contacts.FAR)])
-    dist = dist.at[0].set(jnp.where(first, dist0, contacts.FAR))
+    dist = jnp.concatenate([dist0[None], jnp.where(keep[order], dd[order], colliders.FAR)])
+    dist = dist.at[0].set(jnp.where(first, dist0, colliders.FAR))
     pos = jnp.concatenate([pos0[None], cpos[order]])
-    frame = jnp.tile(contacts.make_frame(normal)[None], (4, 1, 1))
+    frame = jnp.tile(colliders.make_frame(normal)[None], (4, 1, 1))
     return dist, pos, frame
 
 
@@ -359,6 +359,6 @@ def _make(t1: int, t2: int):
 
 
 for _t1, _t2 in _PAIRS:
-    contacts.PORTED[(_t1, _t2)] = _make(_t1, _t2)
+    colliders.PORTED[(_t1, _t2)] = _make(_t1, _t2)
 
 _install_put_model_hook()

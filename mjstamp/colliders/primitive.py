@@ -41,14 +41,14 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from mjstamp.scenes.contacts import FAR, PORTED, collider
-from mjstamp.scenes.contacts.cmath import cross as _cross
-from mjstamp.scenes.contacts.cmath import dot as _dot
-from mjstamp.scenes.contacts.cmath import frame as _frame
-from mjstamp.scenes.contacts.cmath import mat_t_vec as _matTvec
-from mjstamp.scenes.contacts.cmath import matvec as _matvec
-from mjstamp.scenes.contacts.cmath import normalize as _normalize
-from mjstamp.scenes.contacts.cmath import sqrt as _sqrt
+from mjstamp.colliders import FAR, PORTED, collider
+from mjstamp.colliders.cmath import cross as _cross
+from mjstamp.colliders.cmath import dot as _dot
+from mjstamp.colliders.cmath import frame as _frame
+from mjstamp.colliders.cmath import mat_t_vec as _matTvec
+from mjstamp.colliders.cmath import matvec as _matvec
+from mjstamp.colliders.cmath import normalize as _normalize
+from mjstamp.colliders.cmath import sqrt as _sqrt
 
 __all__ = [
     "capsule_capsule",

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from mjstamp.scenes.contacts.gjk import (
+from mjstamp.colliders.gjk import (
     BOX,
     CAPSULE,
     CYLINDER,

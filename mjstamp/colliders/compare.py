@@ -28,7 +28,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from mjstamp.scenes._mjx import mjx
+from mjstamp._mjx import mjx, model_bytes
 
 T = mujoco.mjtGeom
 NAMES = {i: T(i).name.removeprefix("mjGEOM_").lower() for i in range(int(T.mjNGEOMTYPES))}
@@ -366,11 +366,11 @@ def mjx_contacts(pm: PairModel, draws: Draws, *, batch: int = 2048,
 
     N.B. compiled once per pair model, collision table (`table_version`) and kinematics.
     """
-    from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
+    from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
     if kinematics not in ("c", "mjx"):
         raise ValueError(f"kinematics={kinematics!r}; valid: c, mjx")
-    fn = mjx_collide(pm.xml, contacts.table_version(), kinematics == "c")
+    fn = mjx_collide(pm.xml, colliders.table_version(), kinematics == "c")
     xpos, xmat = c_poses(pm, draws)
     out = []
     for start in range(0, len(draws), batch):
@@ -498,11 +498,10 @@ def compare_states(m: mujoco.MjModel, qpos: np.ndarray) -> dict[str, Report]:
     does; the reports are merged per pair of geom types ('box-box'), so a
     model's own sizes, margins and `<pair>` settings are what is compared.
     """
-    from mjstamp.scenes import contacts  # pylint: disable=g-import-not-at-top
-    from mjstamp.scenes.fidelity import model_bytes  # pylint: disable=g-import-not-at-top
+    from mjstamp import colliders  # pylint: disable=g-import-not-at-top
 
     qpos = np.asarray(qpos, np.float64)
-    fn = _mjx_scene_collide(model_bytes(m), contacts.table_version())
+    fn = _mjx_scene_collide(model_bytes(m), colliders.table_version())
     rows, geoms, active = (np.asarray(a) for a in jax.device_get(fn(jnp.asarray(qpos))))
     d = mujoco.MjData(m)
     per_type: dict[str, tuple[PairModel, list, list]] = {}

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from mjstamp.scenes.contacts import cmath
+from mjstamp.colliders import cmath
 
 # mjtGeom
 PLANE, HFIELD, SPHERE, CAPSULE, ELLIPSOID, CYLINDER, BOX, MESH = range(8)
@@ -1308,7 +1308,7 @@ def _multi(k1: Kind, k2: Kind, o1: Obj, o2: Obj, s: Single, max_contacts: int) -
     if max_contacts < 2:
         return CCDResult(s.contact.astype(itype), s.dist[None], s.x1[None], s.x2[None],
                          s.overflow)
-    from mjstamp.scenes.contacts import gjk_multi  # pylint: disable=g-import-not-at-top
+    from mjstamp.colliders import gjk_multi  # pylint: disable=g-import-not-at-top
 
     nslot = 4
     sm = s.simplex

@@ -35,6 +35,9 @@ convex routines (sphere-, capsule-, box- and mesh-mesh, measured off C on
 as approximate (`approximate_pairs`, `mjstamp check`, the solve's fidelity
 check and warning), and `exact_meshes()` installs C's for them (a price of
 roughly a thousand on those pairs' collisions).
+
+May import: mujoco, mujoco.mjx, jax, numpy, and of mjstamp only `_mjx` and
+`errors`: the colliders sit below `scenes/`, which installs them.
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from mjstamp.scenes import _mjx  # noqa: F401 - imports mujoco.mjx without its stdout chatter
+from mjstamp import _mjx  # mujoco.mjx without its stdout chatter; rewriting its source
 
 __all__ = [
     "FAR",
@@ -151,7 +154,7 @@ def table_version() -> int:
 def _register() -> None:
     """Imports the ported routines, which add themselves to `PORTED`."""
     # pylint: disable=g-import-not-at-top,unused-import
-    from mjstamp.scenes.contacts import box_box, capsule_box, convex, primitive  # noqa: F401
+    from mjstamp.colliders import box_box, capsule_box, convex, primitive  # noqa: F401
 
 
 def patch_collisions() -> None:
@@ -170,10 +173,8 @@ def patch_collisions() -> None:
         return
     from mujoco.mjx._src import collision_driver  # pylint: disable=g-import-not-at-top
 
-    from mjstamp.scenes import gradsafe  # pylint: disable=g-import-not-at-top
-
     _register()
-    collide = gradsafe.rewrite(
+    collide = _mjx.rewrite(
         collision_driver, "collision",
         [("dist, pos, frame = func(m, d, key, contact.geom)",
           "dist, pos, frame = _mjs_call(func, m, d, key, contact)")],
@@ -272,14 +273,14 @@ def safe_norm(x: jax.Array, axis: int = -1) -> jax.Array:
 
 def make_frame(normal: jax.Array) -> jax.Array:
     """(3, 3) contact frame of a normal, as C's `mju_makeFrame` with no tangent set."""
-    from mjstamp.scenes.contacts import cmath  # pylint: disable=g-import-not-at-top
+    from mjstamp.colliders import cmath  # pylint: disable=g-import-not-at-top
 
     return cmath.frame(normal, jnp.zeros_like(normal))
 
 
 def frame_with_tangent(normal: jax.Array, tangent: jax.Array) -> jax.Array:
     """As C's `mju_makeFrame` when the collider set a tangent (used if |tangent|² >= 0.25)."""
-    from mjstamp.scenes.contacts import cmath  # pylint: disable=g-import-not-at-top
+    from mjstamp.colliders import cmath  # pylint: disable=g-import-not-at-top
 
     return cmath.frame(normal, tangent)
 

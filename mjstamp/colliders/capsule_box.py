@@ -27,8 +27,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from mjstamp.scenes.contacts import FAR, PORTED, collider
-from mjstamp.scenes.contacts.cmath import (
+from mjstamp.colliders import FAR, PORTED, collider
+from mjstamp.colliders.cmath import (
     dot_s,
     frame_s,
     mat_t_vec_s,
