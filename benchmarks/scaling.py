@@ -317,8 +317,8 @@ def run_cmaes(task, config, budget_s: float, seed: int) -> dict:
 
 def _solve_record(task, config, seed: int, **stamp) -> dict:
     """`mjstamp.solve` at `config` (with `stamp` overrides), warmed up first; its record."""
+    from mjstamp import solve
     from mjstamp.config import SolveConfig
-    from mjstamp.solve import solve
 
     cfg = SolveConfig.from_dict({"stamp": stamp}, base=SolveConfig.from_dict(config or {}))
     warm = SolveConfig.from_dict({"stamp": {"svgd_max_iters": min(1, cfg.stamp.svgd_max_iters),

@@ -1,29 +1,36 @@
 """mjstamp: differentiable task and motion planning (STAMP) on MuJoCo MJX.
 
+The public face: what a user writes is importable from here.
+
     import mjstamp
-    from mjstamp.tasks import Task, costs
-    from mjstamp.scenes import Scene
-    from mjstamp.solve import solve
+    from mjstamp import Scene, SolveConfig, Task, costs, load, solve
 
     mjstamp.configure()                      # float64, compilation cache
     task = Task("mine", Scene("table.xml"), horizon=200)
     ...                                      # variables, symbols, costs, success
-    result = solve(task, {"particles": 64})
+    result = solve(task, SolveConfig(particles=64))
     result.save("results/mine")              # plans.json, .npz, scene.mjb, figures
-    saved = mjstamp.load("results/mine")
+    saved = load("results/mine")
+
+Everything else stays importable from its module (`mjstamp.svgd`,
+`mjstamp.verify`, `mjstamp.registry`, ...); `docs/architecture.md` draws
+which module may import which.
 
 References:
   Lee et al., "Differentiable Task and Motion Planning via Stein Variational
   Gradient Descent" (STAMP).
 
 N.B. importing mjstamp has no side effects: no XLA flags, no x64, no cache
-directory. `configure()` (which the CLI calls) or your script sets those.
+directory, and JAX is not imported until a name that needs it is used
+(`Scene`, `Task`, `costs`, `solve`). `configure()` (which the CLI calls) or
+your script sets the rest.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mjstamp.version import __version__  # noqa: F401 - the package face hands it on
 
@@ -125,4 +132,35 @@ def load(path: str | os.PathLike, *, task: str | None = None):
     return load_results(path, task=task)
 
 
-__all__ = ["DEFAULT_CACHE", "configure", "load"]
+# The names a user writes, imported when first used (PEP 562): `import mjstamp`
+# stays cheap and free of JAX until then.
+_FACE = {
+    "Scene": "mjstamp.scenes",
+    "SolveConfig": "mjstamp.config",
+    "Task": "mjstamp.tasks",
+    "costs": "mjstamp.tasks",
+    "solve": "mjstamp.solver",
+}
+
+
+def __getattr__(name: str):
+    if name in _FACE:
+        import importlib  # noqa: PLC0415
+
+        value = getattr(importlib.import_module(_FACE[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'mjstamp' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_FACE))
+
+
+if TYPE_CHECKING:
+    from mjstamp.config import SolveConfig
+    from mjstamp.scenes import Scene
+    from mjstamp.solver import solve
+    from mjstamp.tasks import Task, costs
+
+__all__ = ["DEFAULT_CACHE", "Scene", "SolveConfig", "Task", "configure", "costs", "load", "solve"]

@@ -76,7 +76,7 @@ def save_figures(
     """Writes the figures of a solve into `out`, each PNG atomically.
 
     Args:
-      result: a `mjstamp.solve.SolveResult`.
+      result: a `mjstamp.solver.SolveResult`.
       out: a writable folder (created if missing).
       landscape: draw landscape.png when θ is two-dimensional (it costs about
         `LANDSCAPE_BUDGET` particle-steps of MJX rollouts, ~12 s on a CPU).

@@ -24,7 +24,7 @@ import sys, time
 sys.path.insert(0, {str(TESTS)!r})
 from conftest import make_tiny_task
 from mjstamp import checkpoint
-from mjstamp.solve import solve
+from mjstamp import solve
 out, resume, slow = sys.argv[1], "resume" in sys.argv, "slow" in sys.argv
 if slow:  # a pause per checkpoint, so a signal can land mid-solve
     save = checkpoint.save
@@ -40,7 +40,7 @@ r.save(out, figures=False)
 
 # plans.json without what varies between runs (timings): the kill-and-resume benchmark's.
 sys.path.insert(0, str(TESTS.parent))
-from mjstamp.solve import FOUND_FILE  # noqa: E402
+from mjstamp.solver import FOUND_FILE  # noqa: E402
 from tests.stress.kill_resume import stable_plans as _stable  # noqa: E402
 
 
@@ -113,8 +113,8 @@ def test_sigterm_writes_a_checkpoint_and_says_how_to_continue(reference, tmp_pat
 
 
 def test_a_checkpoint_of_other_settings_is_refused_in_one_line(tmp_path, tiny_task):
+    from mjstamp import solve  # noqa: PLC0415
     from mjstamp.config import SolveConfig  # noqa: PLC0415
-    from mjstamp.solve import solve  # noqa: PLC0415
 
     problem = tiny_task().build()
     # The checkpoint of the same solve with 16 particles instead of 8.

@@ -97,8 +97,8 @@ def test_solve_warns_in_one_line_and_goes_on_where_mjx_parts(monkeypatch, tiny_t
     """A parting MJX is a FidelityWarning naming the pairs, not a refusal."""
     import warnings
 
-    from mjstamp import solve as solve_mod
     from mjstamp.errors import FidelityWarning
+    from mjstamp.solver import pipeline as solve_mod
 
     problem = tiny_task().build()
     theta = np.array([[1.0, 0.5], [1.5, -0.5]])

@@ -13,10 +13,10 @@ import warnings
 import numpy as np
 import pytest
 
+from mjstamp import solve
 from mjstamp.errors import FidelityWarning
 from mjstamp.scenes import Scene
 from mjstamp.scenes.check import CheckSpec, check_scene
-from mjstamp.solve import solve
 from mjstamp.tasks import Task, costs
 
 PADDLE = """

@@ -5,11 +5,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from mjstamp import kinematics, verify
+from mjstamp import kinematics, solve, verify
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
 from mjstamp.scenes.distance import make_distance_bound
-from mjstamp.solve import solve
 from mjstamp.tasks import Task, costs
 from mjstamp.tasks.problem import Rollout
 

@@ -27,7 +27,7 @@ else:
     mjstamp.configure(coordinator=f"127.0.0.1:{{port}}", num_processes=2, process_id=pid)
 import jax
 from conftest import make_tiny_task
-from mjstamp.solve import solve
+from mjstamp import solve
 cfg = {{"particles": 7, "stamp": {{"svgd_max_iters": 6, "sgd_max_iters": 6, "min_iters": 100}}}}
 s = solve(make_tiny_task(), cfg, seed=0, progress=False).summary()
 print(json.dumps({{"devices": s["devices"], "processes": jax.process_count(),

@@ -8,11 +8,11 @@ contacts under load) into a wall; one Newton iteration does not converge there.
 import numpy as np
 import pytest
 
-from mjstamp import verify
+from mjstamp import solve, verify
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene, fidelity
 from mjstamp.scenes.check import CheckSpec, check_scene
-from mjstamp.solve import SolveConfig, solve
+from mjstamp.solver import SolveConfig
 from mjstamp.tasks import Task, costs
 
 SLIDE = """

@@ -11,9 +11,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PathCollection
 from matplotlib.image import imread
 
-from mjstamp import figures, geometry, verify
+from mjstamp import figures, geometry, solve, verify
 from mjstamp.errors import MjstampError
-from mjstamp.solve import solve
 
 CONFIG = {
     "particles": 8,

@@ -18,7 +18,7 @@ import mjstamp
 mjstamp.configure(devices=2)
 import jax
 from conftest import make_tiny_task
-from mjstamp.solve import solve
+from mjstamp import solve
 out = {{"devices": len(jax.devices())}}
 for k in (1, 2):
     cfg = {{"particles": 7, "devices": k,

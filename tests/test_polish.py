@@ -5,10 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjstamp import svgd, verify
+from mjstamp import solve, svgd, verify
 from mjstamp.config import SolveConfig
 from mjstamp.errors import MjstampError
-from mjstamp.solve import solve
 from mjstamp.tasks import Task, costs
 from mjstamp.tasks.declaration import SumOfSquares
 
@@ -218,7 +217,7 @@ def test_the_polish_never_swaps_a_verified_plan_for_another():
     """
     from types import SimpleNamespace
 
-    from mjstamp import solve as solve_mod
+    from mjstamp.solver import pipeline as solve_mod
 
     def evaluate(theta, replay=None):  # succeeds where x > 0; task plan "a" where y > 0
         plan = np.where(theta[:, 1] > 0, "a", "b").astype(object)
@@ -240,7 +239,7 @@ def test_the_polish_never_swaps_a_verified_plan_for_another():
 
 
 def test_polish_runs_by_default_on_an_accelerator_only(monkeypatch):
-    from mjstamp import solve as solve_mod
+    from mjstamp.solver import pipeline as solve_mod
 
     assert solve_mod.polish_iterations(SolveConfig()) == 0  # the test session's CPU
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
@@ -249,7 +248,7 @@ def test_polish_runs_by_default_on_an_accelerator_only(monkeypatch):
 
 
 def test_the_landing_shortens_sgd_where_it_refines(tiny_task):
-    from mjstamp import solve as solve_mod
+    from mjstamp.solver import pipeline as solve_mod
 
     problem = tiny_task().build()
     cfg = SolveConfig()
@@ -260,7 +259,7 @@ def test_the_landing_shortens_sgd_where_it_refines(tiny_task):
 
 def test_polish_and_landing_need_residuals(tiny_task):
     """A task without residual costs is left as STAMP leaves it: no polish, no landing."""
-    from mjstamp import solve as solve_mod
+    from mjstamp.solver import pipeline as solve_mod
 
     task = tiny_task()
     bare = Task("bare", task.scene, horizon=20)
@@ -292,7 +291,7 @@ def test_a_budget_splits_the_solve_and_screens_while_it_yields(tiny_task):
     import time
 
     from mjstamp import seeding
-    from mjstamp import solve as solve_mod
+    from mjstamp.solver import pipeline as solve_mod
 
     with pytest.raises(MjstampError, match="budget=0 must be a number of seconds > 0 or None"):
         SolveConfig(budget=0)

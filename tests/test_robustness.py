@@ -135,8 +135,9 @@ def test_robust_log_density_is_the_mean_cost_over_draws_and_cvar_the_worst(tiny_
 
 
 def test_a_robust_solve_records_its_draws_and_keys_its_traces_by_them(tiny_task, monkeypatch):
-    from mjstamp import solve as solve_mod
-    from mjstamp.solve import problem_jit, solve
+    from mjstamp import solve
+    from mjstamp.solver import outcome as solve_mod
+    from mjstamp.solver import problem_jit
 
     config = {"particles": 8, "stamp": {"svgd_max_iters": 4, "sgd_max_iters": 4, "min_iters": 100},
               "robust.draws": 2, "verify.robustness_samples": 4}
@@ -187,8 +188,8 @@ def test_robust_cvar_without_robust_is_one_line(capsys):
 
 def test_robust_select_gives_each_task_plan_its_most_robust_candidates(tiny_task):
     """robust.select: the same task plans, each at least as robust on the selection draws."""
+    from mjstamp import solve
     from mjstamp.scenes import uncertainty
-    from mjstamp.solve import solve
 
     # N.B. polish and landing off: they move particles to the goal's centre, which leaves
     # the screen no more robust candidate to offer on this tiny goal.

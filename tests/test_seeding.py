@@ -140,7 +140,7 @@ def _evaluate(theta):
     (("e", "c"), {1: "c"}),  # MJX rejects "e": its particle gets its own plan back
 ])
 def test_solve_returns_screen_plans_no_particle_holds(order, placed):
-    from mjstamp.solve import _keep_screened
+    from mjstamp.solver.selection import keep_screened as _keep_screened
 
     theta = np.arange(8.0).reshape(4, 2)  # particles 0, 1 hold "a", 2 holds "b", 3 fails
     pools = {"b": [[9.0, 9.0]], "c": [[20.0, 20.0], [21.0, 21.0]], "d": [[30.0, 30.0]],

@@ -129,8 +129,8 @@ def test_billiards_contacts_match_mujoco_contact_list(billiards_task):
 
 @pytest.mark.slow
 def test_tiny_task_solves_and_results_round_trip(tmp_path, tiny_task, monkeypatch):
-    from mjstamp import solve as solve_mod
-    from mjstamp.solve import solve
+    from mjstamp import solve
+    from mjstamp.solver import outcome as solve_mod
 
     labels = []  # what the solve compiles, by the label its compile reports carry
 
@@ -242,7 +242,7 @@ def test_format_table_text_and_markdown():
 
 
 def test_loss_report_by_hand():
-    from mjstamp.solve import loss_report
+    from mjstamp.solver import loss_report
 
     nan = float("nan")
     costs = {"initial": np.array([10.0, 8.0, nan, 6.0]), "svgd": np.array([7.0, 5.0, 1.0, 3.0]),
@@ -308,8 +308,8 @@ def test_with_cost_scale_scales_the_log_posterior_and_its_trace_key(tiny_task, m
     import jax
     import jax.numpy as jnp
 
-    from mjstamp import solve as solve_mod
-    from mjstamp.solve import problem_jit
+    from mjstamp.solver import outcome as solve_mod
+    from mjstamp.solver import problem_jit
 
     problem = tiny_task(horizon=30).build()
     hot = problem.with_cost_scale(3.0)

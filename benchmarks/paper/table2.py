@@ -35,8 +35,7 @@ from benchmarks.common import add_devices_argument, save_json  # noqa: E402
 
 def _row(name: str, overrides: dict, seeds: int, say) -> dict:
     """One setting: an untimed warm-up solve, then one timed solve per seed."""
-    from mjstamp import tasks
-    from mjstamp.solve import solve
+    from mjstamp import solve, tasks
 
     task, config = tasks.load(name, **overrides)
     say(f"{name} {overrides}: warm-up solve (compiles)")

@@ -68,7 +68,7 @@ def measure(name: str, *, particles: int, repeats: int, seed: int = 0) -> dict:
     import jax.numpy as jnp
 
     from mjstamp import seeding
-    from mjstamp.solve import SolveConfig, calibrate, mjx_divergence
+    from mjstamp.solver import SolveConfig, calibrate, mjx_divergence
 
     task = _task(name).build()
     theta, _ = seeding.seed_particles(task, jax.random.key(seed), particles)
@@ -100,7 +100,7 @@ def measure_collisions(name: str, *, particles: int, repeats: int, seed: int = 0
     import jax.numpy as jnp
 
     from mjstamp import colliders, seeding
-    from mjstamp.solve import SolveConfig, calibrate, mjx_divergence
+    from mjstamp.solver import SolveConfig, calibrate, mjx_divergence
 
     task = _task(name).build()
     theta, _ = seeding.seed_particles(task, jax.random.key(seed), particles)

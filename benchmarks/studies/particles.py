@@ -1,6 +1,6 @@
 """Particles that do their job (issue 11): billiards and pushing K = 2 over seeds.
 
-For each task and seed, a default solve (`mjstamp.solve.solve` with the
+For each task and seed, a default solve (`mjstamp.solve` with the
 task's registered settings, plus any `--set`) and, with `--compare KEY=VALUE`,
 the same solve with that setting changed. Reported per solve: the share of
 particles that end as verified plans, distinct verified task plans (billiards:
@@ -34,8 +34,7 @@ TARGET_PUSH_SEQUENCES = 6
 
 
 def _solve_row(name: str, overrides: dict, seed: int, truth: list[str] | None) -> dict:
-    from mjstamp import tasks
-    from mjstamp.solve import solve
+    from mjstamp import solve, tasks
 
     task, config = tasks.load(name, **overrides)
     started = time.perf_counter()

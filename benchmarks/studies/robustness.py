@@ -64,9 +64,8 @@ def _median(x) -> float | None:
 
 
 def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> dict:
-    from mjstamp import tasks, verify
+    from mjstamp import solve, tasks, verify
     from mjstamp.scenes import uncertainty
-    from mjstamp.solve import solve
 
     task, config = tasks.load(name, **overrides)
     for kind, spread in declare:  # as a user would: task.uncertain(kind, spread=...)

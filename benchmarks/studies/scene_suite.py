@@ -2,7 +2,7 @@
 
 For each scene of `examples/suite/` (plain MJCF with MuJoCo's default
 contacts, friction and gravity; tasks declared with the public API only, see
-examples/suite/tasks.py) this builds the task, runs `mjstamp.solve.solve(task,
+examples/suite/tasks.py) this builds the task, runs `mjstamp.solve(task,
 {"particles": N}, seed=S)` with every other setting at the library's default,
 and reports, against the scene's MuJoCo C ground truth
 (examples/suite/ground_truth.py):
@@ -100,9 +100,8 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
     from suite.ground_truth import ground_truth
     from suite.tasks import SUITE
 
-    from mjstamp import modes
+    from mjstamp import modes, solve
     from mjstamp.errors import FidelityWarning, MjstampError
-    from mjstamp.solve import solve
 
     try:
         task = SUITE[name]()

@@ -64,7 +64,7 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
       "distinct_verified" (per seed), "reached" (per seed), "runtime_s" (per
       seed), "target" (per seed)}}.
     """
-    from mjstamp.solve import solve  # noqa: PLC0415
+    from mjstamp import solve  # noqa: PLC0415
 
     methods = parse_methods(methods)
     _check(seeds, cap_s)
@@ -76,7 +76,7 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
     baselines = [m for m in methods if m != "stamp"]
     if baselines and "enumerate" in baselines:
         from mjstamp.baselines.common import candidates  # noqa: PLC0415
-        from mjstamp.solve import as_problem  # noqa: PLC0415
+        from mjstamp.solver import as_problem  # noqa: PLC0415
 
         candidates(as_problem(task))  # N.B. a task enumerate cannot apply to fails before any work
     if warm_up:

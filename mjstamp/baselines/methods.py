@@ -76,7 +76,7 @@ def _setup(task, config, seed: int, starts: int, *,
     with a symbol the gradient model cannot relax is refused at once
     (`Problem.check_relaxed`), before calibrating.
     """
-    from mjstamp import solve as solve_mod  # noqa: PLC0415 - solve imports much
+    from mjstamp.solver import pipeline as solve_mod  # noqa: PLC0415 - solve imports much
 
     _integer("seed", seed, 0)
     _integer("starts", starts, 1)
@@ -95,7 +95,7 @@ class _SGD:
 
     def __init__(self, problem: Problem, cfg: SolveConfig, starts: int, *, symbol_weight: float,
                  block_weight: float):
-        from mjstamp import solve as solve_mod  # noqa: PLC0415
+        from mjstamp.solver import pipeline as solve_mod  # noqa: PLC0415
 
         self.problem, self.starts = problem, starts
         devices = _devices(cfg)
@@ -325,7 +325,7 @@ def run_cem(task, *, target: int | None = None, cap_s: float = 600.0, seed: int 
 
 def _mjx_cost(problem: Problem, population: int, devices: int):
     """θ (P, d) numpy -> (P,) the task's cost of its MJX rollouts at Γ(θ) (non-finite: inf)."""
-    from mjstamp import solve as solve_mod  # noqa: PLC0415
+    from mjstamp.solver import pipeline as solve_mod  # noqa: PLC0415
 
     dtype = problem.scene.dtype
 

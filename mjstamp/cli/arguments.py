@@ -35,7 +35,7 @@ def parse_devices(text: str) -> int | str:
 
 def parse_seed(text: str) -> int:
     """A --seed value: an integer in 0 .. 2**63 - 1 (what JAX's and NumPy's PRNGs take)."""
-    from mjstamp.solve import MAX_SEED
+    from mjstamp.solver import MAX_SEED
 
     try:
         value = int(text)

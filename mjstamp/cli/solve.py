@@ -74,8 +74,7 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     """Solves; prints the results table (or one JSON object) and writes --out."""
-    from mjstamp import modes, parallel, results, tasks
-    from mjstamp.solve import solve
+    from mjstamp import modes, parallel, results, solve, tasks
 
     overrides = _overrides(args)
     out, resume = _results_dir(args)

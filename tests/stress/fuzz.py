@@ -62,7 +62,7 @@ FLAGS = (
 CHECK_ARGS = ("--particles", "4", "--horizon", "20", "--json")
 OUTCOMES = ("ok", "rejected", "unhealthy", "crash")
 # The tiny solve: a few particles and iterations, enough to compile and run every
-# stage of `mjstamp.solve.solve` (screen, calibration, STAMP's two phases, decode
+# stage of `mjstamp.solve` (screen, calibration, STAMP's two phases, decode
 # and C verification) once; min_iters > the iterations, so no phase ends early.
 SOLVE_CONFIG = {"particles": 4,
                 "stamp": {"svgd_max_iters": 2, "sgd_max_iters": 2, "min_iters": 100},
@@ -573,8 +573,8 @@ def solve_in_process(path: str | Path) -> tuple[str, str, bool]:
     (a scene without joints) or "crash" (any other exception, an
     `MjstampError` of several lines, or "Traceback" printed while solving).
     """
+    from mjstamp import solve
     from mjstamp.scenes import Scene
-    from mjstamp.solve import solve
 
     out, err = io.StringIO(), io.StringIO()
     try:
@@ -607,7 +607,7 @@ def fuzz_scenes(n: int, *, check: int = 0, subprocesses: int = 2, solve: int = 0
       subprocesses: of the checked scenes, how many (the first ones) run the
         `mjstamp` console script in a subprocess instead of `cli.main` in-process.
       solve: how many scenes (the first that build, with a joint) go through
-        `generic_task` and `mjstamp.solve.solve(task, SOLVE_CONFIG)` in-process
+        `generic_task` and `mjstamp.solve(task, SOLVE_CONFIG)` in-process
         (each compiles a solve: about a minute on a CPU).
       seed: scene i is `scene_mjcf(seed, i)`.
       examples: how many crash messages to keep.

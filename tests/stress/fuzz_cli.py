@@ -169,7 +169,7 @@ def random_argv(rng, root: Path) -> list[str]:
 def _stubs(seen: list):
     """The expensive work raises Accepted (a solve records what it was given)."""
     import mjstamp.scenes.check as check_mod
-    import mjstamp.solve as solve_mod
+    import mjstamp.solver.pipeline as solve_mod
     import mjstamp.viz.playback as playback
 
     def initial_particles(problem, cfg, seed, say):  # solve's first expensive step
