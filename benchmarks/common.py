@@ -48,10 +48,10 @@ def load_task(name: str):
     Returns:
       a fresh `Task`.
     """
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    if name in tasks.names():
-        return tasks.load(name)[0]
+    if name in registry.names():
+        return registry.load(name)[0]
     use_suite()
     from suite.tasks import SUITE
 

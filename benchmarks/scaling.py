@@ -14,7 +14,7 @@ success while the physics stays the same:
   strikes a ball into one of three goals, with K torque knots per motor
   (d = 2K: 4, 8, 16, 32); task plan = the rails the ball touches and the goal;
 - `pushing` (k1 … k5): the registered pushing task with up to K pushes
-  (`tasks.load("pushing", max_pushes=K)`, d = 7K: 7 … 35), as Table III;
+  (`registry.load("pushing", max_pushes=K)`, d = 7K: 7 … 35), as Table III;
 - `rarity` (r0.2 … r0.003): billiards' table and balls (d = 2), the target
   ball to end within r of a spot (0.6, 0.25) on the open table, declared as
   residuals (`Task.residuals`, tolerance r: what the landing descends on); the
@@ -57,7 +57,7 @@ succeed, `verify.robustness`, seed 0) of the plans the method returned.
 - "screen+adam": the ablation, the same solve without the Stein phase
   (`stamp.svgd_max_iters` = 0): the C screen seeds the particles (its best
   candidates spread over task plans), Adam refines them at Γ, no repulsion.
-- "random": uniform shots over θ's box in MuJoCo C (`modes.random_search`).
+- "random": uniform shots over θ's box in MuJoCo C (`baselines.sampling.random_search`).
 - "cmaes": IPOP-CMA-ES in MuJoCo C (`mjstamp.baselines.evolution`), defaults.
 Both solves are run once first, untimed, with 1 iteration per phase (the
 compiles, then cached); compiles left in the timed run are subtracted from
@@ -120,9 +120,9 @@ def arm(knots: int):
 
 def pushing(pushes: int):
     """The registered pushing task with up to `pushes` pushes (d = 7 · pushes)."""
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    return tasks.load("pushing", max_pushes=pushes)[0]
+    return registry.load("pushing", max_pushes=pushes)[0]
 
 
 def spot(radius: float):
@@ -167,9 +167,9 @@ def arm_goal(radius: float):
 
 def pushing_goal(half_size: float):
     """The registered pushing task at 2 pushes, its goal region ± `half_size` (m)."""
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    return tasks.load("pushing", max_pushes=2, goal_half_size=half_size)[0]
+    return registry.load("pushing", max_pushes=2, goal_half_size=half_size)[0]
 
 
 def jaco_spot(radius: float):
@@ -240,14 +240,14 @@ def success_share(task, samples: int, *, seed: int = 0) -> dict:
 
 def solve_config(family: str, member: str) -> dict | None:
     """The solve settings a user runs a member at: its registered task's, else the defaults."""
-    from mjstamp import tasks
+    from mjstamp import registry
 
     if family == "pushing":
-        return tasks.load("pushing", max_pushes=int(member.removeprefix("k")))[1].as_dict()
+        return registry.load("pushing", max_pushes=int(member.removeprefix("k")))[1].as_dict()
     if family == "pushing_goal":
-        return tasks.load("pushing", max_pushes=2)[1].as_dict()
+        return registry.load("pushing", max_pushes=2)[1].as_dict()
     if family == "jaco":
-        return tasks.load("jaco")[1].as_dict()
+        return registry.load("jaco")[1].as_dict()
     return None
 
 
@@ -297,10 +297,10 @@ def quality(task, plans: dict, *, seed: int = 0) -> dict:
 
 
 def run_random(task, config, budget_s: float, seed: int) -> dict:
-    """Uniform shots over θ's box in MuJoCo C for `budget_s` (`modes.random_search`)."""
-    from mjstamp import modes
+    """Uniform shots over θ's box in MuJoCo C for `budget_s` (`sampling.random_search`)."""
+    from mjstamp.baselines import sampling
 
-    r = modes.random_search(task, budget_s, seed=seed, keep_best=PLANS_KEPT)
+    r = sampling.random_search(task, budget_s, seed=seed, keep_best=PLANS_KEPT)
     return record(r["found_at_s"].values(), r["wall_s"], r["shots"], plans=r["best"],
                   successes=r["successes"], found=r["task_plans"])
 

@@ -9,24 +9,43 @@ imported.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 import warnings
 
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
 
-def alias(old: str, new: str, *, submodules: tuple[str, ...] = (), stacklevel: int = 3):
+
+def _warn(text: str) -> None:
+    """Warns where the user wrote the old path: the first frame outside mjstamp.
+
+    N.B. Python shows a DeprecationWarning only where it is attributed to
+    `__main__`; the import machinery's frames do not count (`warnings` skips them).
+    """
+    frame, level = sys._getframe(0), 1
+    while frame is not None:
+        name = frame.f_code.co_filename
+        internal = "importlib" in name and "_bootstrap" in name
+        if not internal:
+            if not name.startswith(_PACKAGE):
+                break
+            level += 1
+        frame = frame.f_back
+    warnings.warn(text, DeprecationWarning, stacklevel=level)
+
+
+def alias(old: str, new: str, *, submodules: tuple[str, ...] = ()):
     """Makes module `old` the module `new` (and `old.sub` the module `new.sub`).
 
     Args:
       old: the old dotted path; its stub module calls this at import.
       new: where the code lives now.
       submodules: names under `new` that were importable under `old`.
-      stacklevel: where the warning points (the importer of the stub).
 
     Returns:
       The module `new`.
     """
-    warnings.warn(f"{old} moved to {new}; the old path works until the next release",
-                  DeprecationWarning, stacklevel=stacklevel)
+    _warn(f"{old} moved to {new}; the old path works until the next release")
     module = importlib.import_module(new)
     sys.modules[old] = module
     for name in submodules:
@@ -39,6 +58,7 @@ def moved_attribute(module: str, name: str, new: str):
 
     For a module-level `__getattr__` at the old place: `module.name` still works.
     """
-    warnings.warn(f"{module}.{name} moved to {new}.{name}; the old path works until the next "
-                  "release", DeprecationWarning, stacklevel=3)
-    return getattr(importlib.import_module(new), name)
+    _warn(f"{module}.{name} moved to {new}.{name}; the old path works until the next release")
+    value = getattr(importlib.import_module(new), name)
+    setattr(sys.modules[module], name, value)  # N.B. one line: `from m import name` asks twice
+    return value

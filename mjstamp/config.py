@@ -293,7 +293,7 @@ def _deprecated(old: str, new: str) -> None:
 
     N.B. Python shows a DeprecationWarning only where it is attributed to
     `__main__` (a script, a notebook); one attributed to a frame inside mjstamp
-    (`tasks.load`, `solve(task, {...})`) would never be seen.
+    (`registry.load`, `solve(task, {...})`) would never be seen.
     """
     frame, level = inspect.currentframe().f_back, 2
     while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):

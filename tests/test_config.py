@@ -5,6 +5,7 @@ import warnings
 
 import pytest
 
+from mjstamp.cli.settings import parse_overrides
 from mjstamp.config import (
     FLAT_NAMES,
     SOLVE_STAMP,
@@ -13,7 +14,6 @@ from mjstamp.config import (
 )
 from mjstamp.errors import MjstampError
 from mjstamp.svgd import StampConfig
-from mjstamp.tasks import parse_overrides
 
 
 def _no_warning(fn):
@@ -137,9 +137,9 @@ def test_the_cli_prints_the_deprecation_in_one_line(capsys):
 
 
 def test_a_task_loads_with_nested_overrides():
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    _, cfg = _no_warning(lambda: tasks.load("billiards", **{"stamp.backtrack": False},
+    _, cfg = _no_warning(lambda: registry.load("billiards", **{"stamp.backtrack": False},
                                             screen={"candidates": 2}))
     assert cfg.stamp.backtrack is False and cfg.screen.candidates == 2
     assert cfg.stamp.svgd_max_iters == 40 and cfg.stamp.jacobian == "fwd"  # billiards' own
@@ -147,11 +147,11 @@ def test_a_task_loads_with_nested_overrides():
 
 def test_the_deprecation_is_attributed_to_the_line_the_user_wrote():
     """A DeprecationWarning shows only where it is attributed to the user's own code."""
-    from mjstamp import tasks
+    from mjstamp import registry
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        tasks.load("billiards", backtrack=False)
+        registry.load("billiards", backtrack=False)
         cfg = SolveConfig.from_dict({"keep_visited": False})
         assert cfg.repair_rounds == cfg.verify.repair_rounds  # a flat read, deprecated too
     assert [w.filename for w in caught] == [__file__] * 3, [(w.filename, w.lineno) for w in caught]

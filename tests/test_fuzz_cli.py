@@ -6,7 +6,7 @@ import sys
 import pytest
 
 from mjstamp.cli import main
-from mjstamp.tasks import parse_overrides
+from mjstamp.cli.settings import parse_overrides
 
 # The fuzz lives in tests/stress/: import it from the repository root.
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))

@@ -6,7 +6,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from mjstamp.tasks import jaco, load
+from mjstamp.registry import load
+from mjstamp.tasks import jaco
 
 #: θ (velocity knots, rad/s: joint 1 ×3, joint 2 ×3, joint 3 ×3) found by uniform
 #: shots replayed in MuJoCo C (seed 0), one per task plan they reached.

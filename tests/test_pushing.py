@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjstamp import tasks, verify
+from mjstamp import registry, verify
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.skills import bank as bank_mod
@@ -19,7 +19,7 @@ SIDE = {name: i for i, name in enumerate(skills.SIDES)}
 
 @pytest.fixture(scope="module")
 def task():
-    task, _ = tasks.load("pushing", max_pushes=2)
+    task, _ = registry.load("pushing", max_pushes=2)
     return task
 
 
@@ -104,18 +104,18 @@ def test_manhattan_detour_is_zero_for_monotone_pushes_only():
 
 def test_bad_settings_are_one_line_errors(tmp_path):
     with pytest.raises(MjstampError, match="max_pushes=0 must be in 1..10"):
-        tasks.load("pushing", max_pushes=0)
+        registry.load("pushing", max_pushes=0)
     with pytest.raises(MjstampError, match=r"goal region at \(1.5, 0.3\).*outside the workspace"):
-        tasks.load("pushing", goal_x=1.5)
+        registry.load("pushing", goal_x=1.5)
     with pytest.raises(MjstampError, match=r"goal_half_size=0 must be > 0"):
-        tasks.load("pushing", goal_half_size=0.0)
+        registry.load("pushing", goal_half_size=0.0)
     missing = tmp_path / "none.npz"
     with pytest.raises(MjstampError, match="not found"):
-        tasks.load("pushing", skill_bank=str(missing))
+        registry.load("pushing", skill_bank=str(missing))
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"not a bank")
     with pytest.raises(MjstampError, match="junk.npz"):
-        tasks.load("pushing", skill_bank=str(junk))
+        registry.load("pushing", skill_bank=str(junk))
 
 
 class _EndsAt:
@@ -134,7 +134,7 @@ class _EndsAt:
 
 
 def test_a_smaller_goal_region_is_the_site_and_the_aim_stays_inside_it():
-    small, _ = tasks.load("pushing", goal_half_size=0.01)
+    small, _ = registry.load("pushing", goal_half_size=0.01)
     site = small.scene.site("goal")
     np.testing.assert_allclose(small.scene.m.site_size[site, :2], [0.01, 0.01])
     np.testing.assert_allclose(small.scene.m.site_pos[site, :2], [0.5, 0.3])
@@ -146,7 +146,7 @@ def test_a_smaller_goal_region_is_the_site_and_the_aim_stays_inside_it():
 
 def test_the_skill_bank_does_not_depend_on_the_goal_region(task):
     """Sites do not touch the demonstrations' physics: a moved or shrunk goal, the same bank."""
-    moved, _ = tasks.load("pushing", max_pushes=2, goal_x=0.4, goal_half_size=0.02)
+    moved, _ = registry.load("pushing", max_pushes=2, goal_x=0.4, goal_half_size=0.02)
     before = moved.scene.m.site_pos.copy()
     fp = skills.fingerprint(moved.scene, moved.extras["setup"])
     assert fp == skills.fingerprint(task.scene, task.extras["setup"])
@@ -162,7 +162,7 @@ def test_an_explicit_stale_bank_is_refused_not_replaced(task, tmp_path):
     bank_mod.save(stale, path)
     before = path.read_bytes()
     with pytest.raises(MjstampError, match="stale"):
-        tasks.load("pushing", skill_bank=str(path))
+        registry.load("pushing", skill_bank=str(path))
     assert path.read_bytes() == before
 
 
@@ -184,7 +184,7 @@ def test_cli_fits_a_skill_bank_file(tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["path"] == str(out) and out.is_file()
     assert max(e["rms_rel"] for e in report["errors"].values()) <= 0.02
-    task, _ = tasks.load("pushing", skill_bank=str(out))  # a fresh file is current
+    task, _ = registry.load("pushing", skill_bank=str(out))  # a fresh file is current
     assert task.extras["bank"].fingerprint == report["fingerprint"]
 
 
@@ -194,7 +194,7 @@ def test_push_skills_reach_any_goal_in_the_workspace(task):
 
     from mjstamp.skills import dmp
 
-    config = tasks.default_config("pushing")
+    config = registry.default_config("pushing")
     low = np.array([config["x_min"], config["y_min"], 0.0])
     high = np.array([config["x_max"], config["y_max"], 0.0])
     size = np.linalg.norm(high - low)

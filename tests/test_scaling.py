@@ -138,10 +138,10 @@ def test_success_share_counts_and_bounds():
 @pytest.mark.slow
 def test_random_search_keeps_the_best_successes_of_each_task_plan():
     """keep_best: at most that many per task plan, lowest C cost first, each a success."""
-    from mjstamp import modes
+    from mjstamp.baselines import sampling
 
     task = scaling.FAMILIES["rarity"]["r0.2"]()
-    r = modes.random_search(task, 2.0, seed=0, keep_best=3)
+    r = sampling.random_search(task, 2.0, seed=0, keep_best=3)
     assert sorted(r["best"]) == r["task_plans"] and r["task_plans"]
     for plan, theta in r["best"].items():
         assert 1 <= len(theta) <= 3

@@ -20,6 +20,7 @@ from mujoco.mjx._src import collision_driver
 from mujoco.mjx._src.types import GeomType
 
 from mjstamp import modes, verify
+from mjstamp.baselines import sampling
 from mjstamp.errors import MjstampError
 
 ROOT = pathlib.Path(__file__).parents[1]
@@ -161,12 +162,12 @@ def test_ground_truth_prints_lines_without_a_terminal(tasks, capsys):
 def test_random_search_stops_in_its_wall_time(tasks):
     """random_search counts only shots that finished within the budget."""
     task = tasks["pendulum_bells"]
-    out = modes.random_search(task, 3.0, seed=0, chunk=16)
+    out = sampling.random_search(task, 3.0, seed=0, chunk=16)
     assert 0 < out["wall_s"] <= 3.0 and out["shots"] % 16 == 0 and out["shots"] > 0
     assert set(out["task_plans"]) == set(out["found_at_s"])
     assert all(0 <= t <= 3.0 for t in out["found_at_s"].values())
     with pytest.raises(Exception, match="wall_s"):
-        modes.random_search(task, 0.0)
+        sampling.random_search(task, 0.0)
 
 
 @pytest.mark.slow

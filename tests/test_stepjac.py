@@ -1,4 +1,4 @@
-"""C values with MJX step Jacobians (`scenes.stepjac`) against central differences of C.
+"""C values with MJX step Jacobians (`benchmarks/perf/stepjac.py`) against C's differences.
 
 The scene: a ball on a free joint (quaternion in qpos: nq = 7, nv = 6) resting on
 a frictional floor, pushed by two motors; its initial velocity (linear and
@@ -6,14 +6,20 @@ angular) and two control segments per motor are θ. It rolls, so the objective
 reads quaternions that change along the trajectory.
 """
 
+import pathlib
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from mjstamp.errors import MjstampError
-from mjstamp.scenes import Scene, stepjac
+from mjstamp.scenes import Scene
 from mjstamp.scenes.check import finite_differences, relative_errors
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from benchmarks.perf import stepjac  # noqa: E402 - measured, not chosen: it lives with its benchmark
 
 BALL = """
 <mujoco model="ball">

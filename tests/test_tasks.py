@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mjstamp import results, seeding, tasks, verify
+from mjstamp import registry, results, seeding, tasks, verify
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
@@ -53,33 +53,33 @@ def test_cost_names_are_looked_up_where_the_cost_is_declared(tiny_xml):
 
 
 def test_registry_errors():
-    assert "billiards" in tasks.names()
+    assert "billiards" in registry.names()
     with pytest.raises(MjstampError, match="unknown task 'nope'; valid: billiards"):
-        tasks.load("nope")
+        registry.load("nope")
     with pytest.raises(MjstampError, match="no setting 'bogus'"):
-        tasks.load("billiards", bogus=1)
+        registry.load("billiards", bogus=1)
 
 
 def test_a_task_setting_named_like_a_solve_setting_is_refused(monkeypatch):
     """An override could not say which of the two it meant (billiards' β did once)."""
     from mjstamp.config import SolveConfig
 
-    tasks.names()  # the built-in tasks registered before the registry is copied
+    registry.names()  # the built-in tasks registered before the registry is copied
     monkeypatch.setattr(tasks, "_REGISTRY", dict(tasks._REGISTRY))
-    tasks.register("clash", lambda: {"particles": 3, "speed": 1.0})(lambda settings: None)
+    registry.register("clash", lambda: {"particles": 3, "speed": 1.0})(lambda settings: None)
     with pytest.raises(MjstampError) as e:
-        tasks.load("clash")
+        registry.load("clash")
     msg = str(e.value)
     assert "'clash'" in msg and "'particles'" in msg and "solve setting" in msg
     assert "\n" not in msg
-    for name in tasks.names():
+    for name in registry.names():
         if name != "clash":
-            assert not set(tasks.default_config(name)) & set(SolveConfig.fields()), name
+            assert not set(registry.default_config(name)) & set(SolveConfig.fields()), name
 
 
 @pytest.fixture(scope="module")
 def billiards_task():
-    return tasks.load("billiards")[0]
+    return registry.load("billiards")[0]
 
 
 # Hand-made shots from the cue ball at (-0.5, -0.2) towards the target at (0.3, 0):

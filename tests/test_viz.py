@@ -689,7 +689,8 @@ def jaco_results(tmp_path_factory):
     takes minutes).
     """
     pytest.importorskip("dm_control")
-    from mjstamp.tasks import jaco, load  # noqa: F401 - importing jaco registers the task
+    from mjstamp.registry import load
+    from mjstamp.tasks import jaco  # noqa: F401 - importing jaco registers the task
 
     problem = load("jaco", **JACO_SETTINGS)[0].build()
     m = problem.scene.m

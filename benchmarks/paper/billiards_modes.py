@@ -27,9 +27,9 @@ def main() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from mjstamp import modes, tasks
+    from mjstamp import modes, registry
 
-    task, _ = tasks.load("billiards")
+    task, _ = registry.load("billiards")
     t0 = time.perf_counter()
     result = modes.sweep(task, grid=args.grid, cache=not args.no_cache, progress=not args.json)
     result = {"benchmark": "billiards_modes", "sweep_s": time.perf_counter() - t0, **result}

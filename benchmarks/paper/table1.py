@@ -48,15 +48,16 @@ def main(argv: list[str] | None = None) -> int:
 
     devices = args.devices or host_device_count("auto")  # one per core, at most 8
     mjstamp.configure(devices=devices, strict_devices=False)
-    from mjstamp import tasks
+    from mjstamp import registry
     from mjstamp.baselines.compare import compare, format_table, parse_methods
+    from mjstamp.cli import settings
     from mjstamp.progress import Progress
 
     methods = parse_methods(args.methods)
     out = {}
     for name in args.tasks:
-        overrides = {**TASKS[name], **tasks.parse_overrides(name, args.set), "devices": None}
-        rows = compare(lambda n=name, o=overrides: tasks.load(n, **o), methods=methods,
+        overrides = {**TASKS[name], **settings.parse_overrides(name, args.set), "devices": None}
+        rows = compare(lambda n=name, o=overrides: registry.load(n, **o), methods=methods,
                        seeds=args.seeds, cap_s=args.cap,
                        progress=Progress(True, f"table1 {name}"))
         out[name] = rows

@@ -35,9 +35,9 @@ from benchmarks.common import add_devices_argument, save_json  # noqa: E402
 
 def _row(name: str, overrides: dict, seeds: int, say) -> dict:
     """One setting: an untimed warm-up solve, then one timed solve per seed."""
-    from mjstamp import solve, tasks
+    from mjstamp import registry, solve
 
-    task, config = tasks.load(name, **overrides)
+    task, config = registry.load(name, **overrides)
     say(f"{name} {overrides}: warm-up solve (compiles)")
     solve(task, config, seed=0, progress=False)
     times, found = [], []
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
 
     mjstamp.configure(devices=args.devices or host_device_count("auto"),  # one per core, at most 8
                       strict_devices=False)
-    from mjstamp import tasks
+    from mjstamp.cli import settings
 
     def say(msg):
         print(f"[table{args.table}] {msg}", file=sys.stderr, flush=True)
@@ -119,11 +119,11 @@ def main(argv: list[str] | None = None) -> int:
         for name in args.tasks:
             for n in args.particles:
                 extra = {"max_pushes": 1} if name == "pushing" else {}
-                overrides = {**extra, **tasks.parse_overrides(name, args.set), "particles": n}
+                overrides = {**extra, **settings.parse_overrides(name, args.set), "particles": n}
                 add(_row(name, overrides, args.seeds, say))
     else:
         for k in args.max_pushes:
-            overrides = {**tasks.parse_overrides("pushing", args.set), "max_pushes": k}
+            overrides = {**settings.parse_overrides("pushing", args.set), "max_pushes": k}
             add(_row("pushing", overrides, args.seeds, say))
     if args.json:
         print(json.dumps(result))

@@ -11,7 +11,7 @@ objective, c₁ and c₂ random unit vectors) on each task's own particles
 - `c+jac-sweep[s]`, `c+jac-scan[s]`: the trajectory is MuJoCo C's, with the
   scene's own solver (`mujoco.rollout`, every core); each step's Jacobian comes
   from one `mjx.step` at C's state, all n·T of them in one batch
-  (`mjstamp.scenes.stepjac`), chained by a backward sweep or an associative
+  (`benchmarks/perf/stepjac.py`), chained by a backward sweep or an associative
   scan. `s` is where the step's constraint solution comes from: `mjx` (the
   calibrated gradient model solves it at C's state, as the brief asks) or `c`
   (C's own solution, recovered from C's next velocity, with the implicit
@@ -96,7 +96,8 @@ def run_scene(name: str, *, particles: int, repeats: int, seed: int, fd_eps: flo
     import jax
     import jax.numpy as jnp
 
-    from mjstamp.scenes import check, fidelity, stepjac
+    from benchmarks.perf import stepjac
+    from mjstamp.scenes import check, fidelity
 
     problem = _problem(name)
     draws = check.task_particles(problem)

@@ -93,9 +93,9 @@ def _rollout_seconds_per_iteration(particles: int) -> tuple[float, float]:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    problem = tasks.load("billiards", particles=particles)[0].build()
+    problem = registry.load("billiards", particles=particles)[0].build()
     theta = problem.init(jax.random.key(0), particles)
 
     def score(t):

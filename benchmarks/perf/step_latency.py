@@ -44,9 +44,9 @@ def _row(n: int, repeats: int) -> dict:
     import jax
     import optax
 
-    from mjstamp import svgd, tasks
+    from mjstamp import registry, svgd
 
-    problem = tasks.load("billiards", particles=n)[0].build()
+    problem = registry.load("billiards", particles=n)[0].build()
     theta = problem.init(jax.random.key(0), n)
     key = jax.random.key(1)
     svgd_step = jax.jit(svgd.build_svgd_step(problem.logdensity, problem.kernel,

@@ -34,9 +34,9 @@ TARGET_PUSH_SEQUENCES = 6
 
 
 def _solve_row(name: str, overrides: dict, seed: int, truth: list[str] | None) -> dict:
-    from mjstamp import solve, tasks
+    from mjstamp import registry, solve
 
-    task, config = tasks.load(name, **overrides)
+    task, config = registry.load(name, **overrides)
     started = time.perf_counter()
     result = solve(task, config, seed=seed, progress=False)
     summary = result.summary()
@@ -88,18 +88,19 @@ def main(argv: list[str] | None = None) -> int:
 
     devices = args.devices or host_device_count("auto")  # one per core, at most 8
     mjstamp.configure(devices=devices, strict_devices=False)
-    from mjstamp import modes, tasks
+    from mjstamp import modes, registry
+    from mjstamp.cli import settings
 
     out: dict = {"benchmark": "particles", "devices": devices, "seeds": args.seeds,
                  "set": args.set, "compare": args.compare}
     for name in args.tasks:
-        base = {**TASKS[name], **tasks.parse_overrides(name, args.set)}
+        base = {**TASKS[name], **settings.parse_overrides(name, args.set)}
         variants = {"default": base}
         if args.compare:
-            variants["compare"] = {**base, **tasks.parse_overrides(name, args.compare)}
+            variants["compare"] = {**base, **settings.parse_overrides(name, args.compare)}
         truth = None
         if name == "billiards":
-            task, _ = tasks.load(name, **base)
+            task, _ = registry.load(name, **base)
             truth = [m["task_plan"] for m in modes.sweep(task, progress=False)["modes"]]
         out[name] = {}
         for label, overrides in variants.items():

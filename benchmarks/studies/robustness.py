@@ -64,10 +64,10 @@ def _median(x) -> float | None:
 
 
 def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> dict:
-    from mjstamp import solve, tasks, verify
+    from mjstamp import registry, solve, verify
     from mjstamp.scenes import uncertainty
 
-    task, config = tasks.load(name, **overrides)
+    task, config = registry.load(name, **overrides)
     for kind, spread in declare:  # as a user would: task.uncertain(kind, spread=...)
         task.uncertain(kind, spread=spread)
     started = time.perf_counter()
@@ -103,9 +103,9 @@ def _solve_row(name: str, overrides: dict, seed: int, declare: list[tuple]) -> d
 def _achievable(name: str, overrides: dict, shots: int, seed: int, declare: list[tuple],
                 chunk: int = 4096) -> dict:
     """Scores of every verified plan among `shots` uniform draws (the ceiling of any planner)."""
-    from mjstamp import modes, tasks, verify
+    from mjstamp import modes, registry, verify
 
-    task, _ = tasks.load(name, **overrides)
+    task, _ = registry.load(name, **overrides)
     for kind, spread in declare:
         task.uncertain(kind, spread=spread)
     problem = task.build()
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
 
     devices = args.devices or host_device_count("auto")  # one per core, at most 8
     mjstamp.configure(devices=devices, strict_devices=False)
-    from mjstamp import tasks
+    from mjstamp.cli import settings
 
     out: dict = {"benchmark": "robustness", "devices": devices, "seeds": args.seeds,
                  "first_seed": args.first_seed, "nominal_only": args.nominal_only,
@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
                  "uncertain": args.uncertain}
     if args.achievable is not None:
         for name in args.tasks:
-            base = {**TASKS[name], **tasks.parse_overrides(name, args.set)}
+            base = {**TASKS[name], **settings.parse_overrides(name, args.set)}
             out[name] = {"achievable": [_achievable(name, base, args.achievable, seed, declare)
                                         for seed in range(args.first_seed,
                                                           args.first_seed + args.seeds)]}
@@ -221,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out))
         return 0
     for name in args.tasks:
-        base = {**TASKS[name], **tasks.parse_overrides(name, args.set)}
+        base = {**TASKS[name], **settings.parse_overrides(name, args.set)}
         rows: dict[str, list[dict]] = {"nominal": [], "robust": []}
         solves = [("nominal", base)]
         if not args.nominal_only:

@@ -14,7 +14,7 @@ and reports, against the scene's MuJoCo C ground truth
 - coverage: found / all ground-truth task plans, and found / those occupying
   at least 0.1% of the box;
 - what uniform random sampling in MuJoCo C finds in the same wall time
-  (`modes.random_search`);
+  (`baselines.sampling.random_search`);
 - wall time, µs per particle-step and the chosen solver iterations.
 
 Issue 28 (contacts as MuJoCo C computes them) adds, per scene: MJX itself
@@ -101,6 +101,7 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
     from suite.tasks import SUITE
 
     from mjstamp import modes, solve
+    from mjstamp.baselines import sampling
     from mjstamp.errors import FidelityWarning, MjstampError
 
     try:
@@ -136,7 +137,7 @@ def run_scene(name: str, *, particles: int, seed: int, overrides: dict, shots: i
     returned = int(summary["returned_plans"])
     verified = int(summary["verified_plans"])
 
-    search = modes.random_search(task, wall, seed=seed) if random else None
+    search = sampling.random_search(task, wall, seed=seed) if random else None
     random_found = set(search["task_plans"]) if search else set()
     row = {
         "scene": name,

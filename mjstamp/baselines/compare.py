@@ -49,7 +49,7 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
 
     Args:
       task_factory: () -> (Task, solve config): a registered task's
-        `tasks.load`, or a user's own function.
+        `registry.load`, or a user's own function.
       methods: of `ALL`; "stamp" is always run (it sets the target).
       seeds: seeds 0..seeds-1.
       cap_s: each baseline's wall-time cap per seed.

@@ -149,7 +149,7 @@ def run_cmaes(task, *, target: int | None = None, cap_s: float = 600.0, seed: in
     Runs until `target` distinct task plans are verified or `cap_s` is spent
     (the module docstring gives the settings and why). One population of each
     size the restarts will use is replayed, decoded and costed first, untimed
-    and discarded, as `modes.random_search` replays one chunk: the JIT
+    and discarded, as `baselines.sampling.random_search` replays one chunk: the JIT
     compiles of the poses, decoder and cost (once per batch size) are not the
     sampler's work; everything after them counts.
 

@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_task_commands(sub) -> None:
     """The commands registered tasks contribute (pushing's `skills`)."""
-    from mjstamp import tasks as registry
+    from mjstamp import registry
 
     for entry in registry.entries().values():
         for command in entry.commands:

@@ -81,9 +81,9 @@ def parse_seconds(what: str):
 
 def add_task_options(*parsers) -> None:
     """The flags registered tasks contribute (pushing's --max-pushes), on each of `parsers`."""
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    for entry in tasks.entries().values():
+    for entry in registry.entries().values():
         for option in entry.options:
             # N.B. parsed after argparse (in task_options): argparse's own errors
             # take two lines (usage, then the error); ours take one.
@@ -94,10 +94,10 @@ def add_task_options(*parsers) -> None:
 
 def task_options(args, task_name: str) -> dict:
     """Settings from the flags tasks contribute (e.g. --max-pushes), for this task."""
-    from mjstamp import tasks
+    from mjstamp import registry
 
     out = {}
-    for name, entry in tasks.entries().items():
+    for name, entry in registry.entries().items():
         for option in entry.options:
             value = getattr(args, option.key, None)
             if value is None:

@@ -50,7 +50,7 @@ def run(args) -> int:
     """Checks the scene or task; prints the report. Exit status 0 if healthy, else 1."""
     import dataclasses
 
-    from mjstamp import tasks
+    from mjstamp import registry
     from mjstamp.scenes.check import CheckSpec, check_scene, check_task
 
     options = _gradient_options(args)
@@ -58,12 +58,12 @@ def run(args) -> int:
     # N.B. an explicit model is judged as given; otherwise the one a solve would calibrate.
     common = dict(particles=args.particles, seed=args.seed, tolerance=args.tolerance,
                   progress=say, calibrate=not options)
-    if args.scene in tasks.names():
+    if args.scene in registry.names():
         # A registered task: its own θ, bounds and horizon.
         if args.horizon is not None:
             raise MjstampError(f"--horizon: task {args.scene!r} has its own horizon; set it "
                                "with the task's settings instead")
-        task, _ = tasks.load(args.scene)
+        task, _ = registry.load(args.scene)
         problem = task.build()
         problem = problem.on_scene(problem.scene.with_grad_options(**options))
         report = check_task(problem, **common)

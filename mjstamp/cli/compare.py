@@ -35,16 +35,17 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     """Runs every method on seeds 0..S-1; prints the table (or one JSON object)."""
-    from mjstamp import parallel, tasks
+    from mjstamp import parallel, registry
     from mjstamp.baselines.compare import compare, format_table, parse_methods
+    from mjstamp.cli import settings
 
     methods = parse_methods(args.methods)
-    overrides = tasks.parse_overrides(args.task, args.set or [])
+    overrides = settings.parse_overrides(args.task, args.set or [])
     overrides.update(task_options(args, args.task))
     if args.devices is not None:
         overrides["devices"] = parallel.shard_count(args.devices)
-    tasks.load(args.task, **overrides)  # N.B. a bad task or setting fails before any work
-    rows = compare(lambda: tasks.load(args.task, **overrides), methods=methods,
+    registry.load(args.task, **overrides)  # N.B. a bad task or setting fails before any work
+    rows = compare(lambda: registry.load(args.task, **overrides), methods=methods,
                    seeds=args.seeds, cap_s=args.cap, progress=not args.quiet)
     if args.json:
         print(json.dumps({args.task: rows}))

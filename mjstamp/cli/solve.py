@@ -74,7 +74,7 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     """Solves; prints the results table (or one JSON object) and writes --out."""
-    from mjstamp import modes, parallel, results, solve, tasks
+    from mjstamp import modes, parallel, registry, results, solve
 
     overrides = _overrides(args)
     out, resume = _results_dir(args)
@@ -82,7 +82,7 @@ def run(args) -> int:
         out = None  # N.B. process 0 writes --out; a resume reads the checkpoint everywhere
     if out:
         results.check_writable(out)
-    task, config = tasks.load(args.task, **overrides)
+    task, config = registry.load(args.task, **overrides)
     progress = None if not args.quiet else False
     every = 30.0 if args.checkpoint_every is None else args.checkpoint_every
     result = solve(task, config, seed=args.seed, progress=progress, checkpoint_dir=out,
@@ -114,10 +114,11 @@ def run(args) -> int:
 
 
 def _overrides(args) -> dict:
-    """`tasks.load`'s overrides: --set, the task's own flags, --particles, --robust, --devices."""
-    from mjstamp import parallel, tasks
+    """`registry.load`'s overrides: --set, the task's flags, --particles, --robust, --devices."""
+    from mjstamp import parallel
+    from mjstamp.cli import settings
 
-    overrides = tasks.parse_overrides(args.task, args.set or [])
+    overrides = settings.parse_overrides(args.task, args.set or [])
     overrides.update(task_options(args, args.task))
     if args.particles is not None:
         if args.particles < 2:

@@ -15,9 +15,9 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     """Prints each task's name and summary (or one JSON object)."""
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    rows = tasks.summaries()
+    rows = registry.summaries()
     if args.json:
         print(json.dumps(rows))
         return 0

@@ -1,260 +1,34 @@
-"""Tasks: TAMP problems declared on scenes, compiled into Problems, and a registry.
+"""Tasks: TAMP problems declared on scenes and compiled into Problems.
 
 A `Task` is a declaration (variables, symbols, costs, success); `task.build()`
-compiles it into the frozen `Problem` that solvers consume. A task module
-registers a factory with `register`: its task settings (`default_config()`)
-and its solve settings (`solve_config()`, a `mjstamp.config.SolveConfig`'s
-fields) are two configs, as mujoco_playground separates an environment's config
-from its training config. `load(name, **overrides)` builds the task; each
-override goes to whichever config has the key, and an unknown key is an error
-naming both; `parse_overrides` types `KEY=VALUE` texts (`--set`) for it. A
-registry entry may also contribute command-line options of `mjstamp solve`
-(pushing's `--max-pushes`) and commands (`mjstamp skills`).
+compiles it into the frozen `Problem` that solvers consume. The registry of
+tasks by name is `mjstamp.registry`; the shipped tasks (`billiards`,
+`pushing`, `jaco`) register themselves there.
 
 May import: scenes/, relax/, svgd/ (kernels), skills/ (pushing), config.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
-from collections.abc import Callable, Sequence
-from typing import Any
-
-from mjstamp.config import FLAT_NAMES, SolveConfig
-from mjstamp.errors import MjstampError, valid_list
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable
 from mjstamp.tasks.problem import Decoded, Poses, Problem, Rollout, as_problem
 from mjstamp.tasks.task import Task
 
-
-@dataclasses.dataclass(frozen=True)
-class Option:
-    """A `mjstamp solve` flag a task contributes: `--flag VALUE` sets task setting `key`."""
-
-    flag: str
-    key: str
-    type: Callable[[str], Any]
-    help: str
-    metavar: str | None = None
+_MOVED = {
+    **dict.fromkeys(("Command", "Entry", "Option", "default_config", "entries", "load", "names",
+                     "register", "solve_config", "summaries"), "mjstamp.registry"),
+    "parse_overrides": "mjstamp.cli.settings",
+}
 
 
-@dataclasses.dataclass(frozen=True)
-class Command:
-    """A `mjstamp NAME` command a task contributes.
+def __getattr__(name: str):
+    # N.B. the registry moved out of this package; its old names work for one release.
+    if name in _MOVED:
+        from mjstamp import _moved  # noqa: PLC0415
 
-    Attributes:
-      name: the command's name.
-      help: one line.
-      add_arguments: fn(argparse parser) adding its arguments.
-      run: fn(parsed args) -> exit status.
-    """
-
-    name: str
-    help: str
-    add_arguments: Callable[[Any], None]
-    run: Callable[[Any], int]
+        return _moved.moved_attribute(__name__, name, _MOVED[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-@dataclasses.dataclass(frozen=True)
-class Entry:
-    """A registered task: its two configs, its factory and what it adds to the CLI."""
-
-    name: str
-    default_config: Callable[[], dict]
-    make: Callable[[dict], Task]
-    summary: str
-    solve_config: Callable[[], dict]
-    options: tuple[Option, ...]
-    commands: tuple[Command, ...]
-
-
-_REGISTRY: dict[str, Entry] = {}
-_BUILTIN_MODULES = ("mjstamp.tasks.billiards", "mjstamp.tasks.pushing", "mjstamp.tasks.jaco")
-
-
-def register(
-    name: str,
-    default_config: Callable[[], dict],
-    summary: str = "",
-    *,
-    solve_config: Callable[[], dict] | None = None,
-    options: Sequence[Option] = (),
-    commands: Sequence[Command] = (),
-):
-    """Decorator registering `make(settings) -> Task` under `name`.
-
-    Args:
-      name: the task's name.
-      default_config: () -> the task's own settings.
-      summary: one line for `mjstamp tasks`.
-      solve_config: () -> the task's solve settings (`SolveConfig.from_dict`'s
-        keys, such as {"stamp": {"min_iters": 20}}, that differ from its
-        defaults); validated when the task is loaded.
-      options: `mjstamp solve` flags this task contributes.
-      commands: `mjstamp` commands this task contributes.
-    """
-
-    def wrap(make: Callable[[dict], Task]):
-        _REGISTRY[name] = Entry(name, default_config, make, summary,
-                                solve_config or dict, tuple(options), tuple(commands))
-        return make
-
-    return wrap
-
-
-def _load_builtins() -> None:
-    for module in _BUILTIN_MODULES:
-        importlib.import_module(module)
-
-
-def entries() -> dict[str, Entry]:
-    """{name: registry entry} of every registered task."""
-    _load_builtins()
-    return dict(sorted(_REGISTRY.items()))
-
-
-def names() -> list[str]:
-    """Registered task names."""
-    return list(entries())
-
-
-def summaries() -> dict[str, str]:
-    """{task name: one-line summary}."""
-    return {name: e.summary for name, e in entries().items()}
-
-
-def _entry(name: str) -> Entry:
-    table = entries()
-    if name not in table:
-        raise MjstampError(f"unknown task {name!r}; valid: {valid_list(table)}")
-    return table[name]
-
-
-def default_config(name: str) -> dict:
-    """The task settings of a registered task (its `default_config()`)."""
-    return _entry(name).default_config()
-
-
-def solve_config(name: str) -> SolveConfig:
-    """The solve settings of a registered task: `SolveConfig` with its overrides."""
-    return SolveConfig.from_dict(_entry(name).solve_config())
-
-
-def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
-    """Builds a registered task; returns (task, its solve settings).
-
-    Each override is a task setting or a solve setting (`SolveConfig.from_dict`'s
-    keys: "particles", a group's dict such as `stamp={...}`, or a dotted key,
-    passed as `**{"stamp.backtrack": False}`), laid over the task's own solve
-    settings.
-
-    Raises:
-      MjstampError: an unknown task or setting (naming both kinds of valid keys),
-        or a task setting named like a solve setting (an override could not
-        say which it meant).
-    """
-    entry = _entry(name)
-    settings = entry.default_config()
-    solve_keys = SolveConfig.fields()
-    taken = set(solve_keys) | set(SolveConfig.groups()) | set(FLAT_NAMES)
-    shadowed = sorted(set(settings) & taken)
-    if shadowed:
-        raise MjstampError(
-            f"task {name!r}: its setting {shadowed[0]!r} has the name of a solve setting; "
-            f"rename it (solve settings: {valid_list(solve_keys)})"
-        )
-    unknown = sorted(set(overrides) - set(settings) - taken)
-    if unknown:
-        raise MjstampError(
-            f"task {name!r} has no setting {unknown[0]!r}; valid task settings: "
-            f"{valid_list(sorted(settings))}; valid solve settings: {valid_list(solve_keys)}"
-        )
-    settings.update({k: v for k, v in overrides.items() if k in settings})
-    config = SolveConfig.from_dict({k: v for k, v in overrides.items() if k not in settings},
-                                   base=SolveConfig.from_dict(entry.solve_config()))
-    task = entry.make(settings)
-    task.settings = dict(settings)
-    return task, config
-
-
-def parse_overrides(task_name: str, pairs: Sequence[str]) -> dict:
-    """`KEY=VALUE` texts (the CLI's `--set`) as `load`'s overrides, each typed like its default.
-
-    A key is a setting of the task or a solve setting by its dotted key
-    (`stamp.backtrack`, `SolveConfig.fields()`; a flat name of before the
-    nesting, such as `backtrack`, is typed like its new key and warned about
-    once by `load`); a value takes its default's type
-    (true/false/1/0/yes/no/on/off for a bool; "none" for a setting whose
-    default is None; a number or a word such as "auto" for `screen.cost_scale`).
-
-    Raises:
-      MjstampError: an unknown task, a pair without "=", an unknown key
-        (listing the valid ones) or a value of the wrong type; one line each.
-    """
-    solve = SolveConfig.leaves()
-    defaults = {**solve, **{old: solve[new] for old, new in FLAT_NAMES.items()}}
-    task_defaults = {k: (v, type(v).__name__) for k, v in default_config(task_name).items()}
-    defaults.update(task_defaults)
-    out = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep:
-            raise MjstampError(f"--set {pair!r}: expected KEY=VALUE")
-        if key not in defaults:
-            raise MjstampError(
-                f"--set {key!r}: task {task_name!r} has no such setting; valid: "
-                + ", ".join(sorted(task_defaults) + list(solve))
-            )
-        out[key] = _parse_value(key, value, *defaults[key])
-    return out
-
-
-def _parse_value(key: str, text: str, default, annotation: str):
-    """One --set value, typed like its default (or, for a None default, its annotation)."""
-    kind = type(default) if default is not None else (
-        float if "float" in annotation else int if "int" in annotation else str
-    )
-    if kind is bool:
-        lowered = text.strip().lower()
-        if lowered in ("true", "1", "yes", "on"):
-            return True
-        if lowered in ("false", "0", "no", "off"):
-            return False
-        raise MjstampError(f"--set {key}={text!r}: expected true or false")
-    if default is None and text.strip().lower() == "none":
-        return None
-    if isinstance(default, str) and "float" in annotation:  # a number, or a word ("auto")
-        try:
-            return float(text)
-        except ValueError:
-            return text  # N.B. SolveConfig names the valid words
-    try:
-        return kind(text)
-    except ValueError:
-        raise MjstampError(f"--set {key}={text!r}: expected {kind.__name__}") from None
-
-
-__all__ = [
-    "Command",
-    "Contact",
-    "Decoded",
-    "Entry",
-    "Kind",
-    "Option",
-    "Poses",
-    "Problem",
-    "Rollout",
-    "Task",
-    "Term",
-    "Variable",
-    "as_problem",
-    "default_config",
-    "entries",
-    "load",
-    "names",
-    "parse_overrides",
-    "register",
-    "solve_config",
-    "summaries",
-]
+__all__ = ["Contact", "Decoded", "Kind", "Poses", "Problem", "Rollout", "Task", "Term", "Variable",
+           "as_problem"]

@@ -30,8 +30,9 @@ Choices (and why):
 
 from __future__ import annotations
 
+from mjstamp.registry import register
 from mjstamp.scenes import Scene
-from mjstamp.tasks import costs, register
+from mjstamp.tasks import costs
 from mjstamp.tasks.task import Task
 
 WALLS = ("wall_top", "wall_bottom", "wall_left", "wall_right")  # paper's 1-4

@@ -76,9 +76,10 @@ from __future__ import annotations
 import numpy as np
 
 from mjstamp.errors import MjstampError
+from mjstamp.registry import register
 from mjstamp.scenes import Scene
 from mjstamp.scenes.compose import start_at
-from mjstamp.tasks import costs, register
+from mjstamp.tasks import costs
 from mjstamp.tasks.task import Task
 
 ARM_JOINTS = tuple(f"joint_{k}" for k in range(1, 7))

@@ -52,10 +52,11 @@ import numpy as np
 
 from mjstamp.errors import MjstampError
 from mjstamp.progress import Progress
+from mjstamp.registry import Command, Option, register
 from mjstamp.scenes import Scene
 from mjstamp.scenes.scene import package_model_path
 from mjstamp.skills import pushing as skills
-from mjstamp.tasks import Command, Option, costs, register
+from mjstamp.tasks import costs
 from mjstamp.tasks.task import Task
 
 

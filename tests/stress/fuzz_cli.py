@@ -66,11 +66,11 @@ class Report:
 
 
 def _settings(task: str) -> dict:
-    from mjstamp import tasks
+    from mjstamp import registry
     from mjstamp.config import SolveConfig
 
     defaults = {key: default for key, (default, _) in SolveConfig.leaves().items()}
-    defaults.update(tasks.default_config(task))
+    defaults.update(registry.default_config(task))
     return defaults
 
 
@@ -186,9 +186,9 @@ def _stubs(seen: list):
     solve_mod._initial_particles = initial_particles
     check_mod.check_scene = check_mod.check_task = stop
     playback.start_server = stop  # view: all but the meshcat server is real
-    from mjstamp import tasks
+    from mjstamp import registry
 
-    commands = [c for e in tasks.entries().values() for c in e.commands]
+    commands = [c for e in registry.entries().values() for c in e.commands]
     runs = [(c, c.run) for c in commands]
     for c, _ in runs:
         object.__setattr__(c, "run", stop)
