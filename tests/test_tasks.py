@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mjstamp import registry, results, seeding, tasks, verify
+from mjstamp import registry, results, seeding, verify
 from mjstamp.cli import main
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
@@ -65,7 +65,7 @@ def test_a_task_setting_named_like_a_solve_setting_is_refused(monkeypatch):
     from mjstamp.config import SolveConfig
 
     registry.names()  # the built-in tasks registered before the registry is copied
-    monkeypatch.setattr(tasks, "_REGISTRY", dict(tasks._REGISTRY))
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     registry.register("clash", lambda: {"particles": 3, "speed": 1.0})(lambda settings: None)
     with pytest.raises(MjstampError) as e:
         registry.load("clash")
