@@ -64,7 +64,7 @@ def compare(task_factory: Callable, *, methods: Sequence[str] = ALL, seeds: int 
       "distinct_verified" (per seed), "reached" (per seed), "runtime_s" (per
       seed), "target" (per seed)}}.
     """
-    from mjstamp import solve  # noqa: PLC0415
+    from mjstamp.solver import solve  # noqa: PLC0415
 
     methods = parse_methods(methods)
     _check(seeds, cap_s)
