@@ -8,7 +8,7 @@ import pytest
 from mjstamp import kinematics, solve, verify
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
-from mjstamp.scenes.distance import make_distance_bound
+from mjstamp.distance import make_distance_bound
 from mjstamp.tasks import Task, costs
 from mjstamp.tasks.problem import Rollout
 

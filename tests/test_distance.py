@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from mjstamp.scenes.distance import SUPPORTED_PAIRS, make_distance_fn, signed_distance
+from mjstamp.distance import SUPPORTED_PAIRS, make_distance_fn, signed_distance
 
 _SIZES = {
     "plane": "0 0 1",

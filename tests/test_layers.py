@@ -17,7 +17,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "mjstamp"
 DOC = ROOT / "docs" / "architecture.md"
 # Old paths kept for one release: each aliases its new module (mjstamp._moved).
-STUBS = {"mjstamp.solve", "mjstamp.scenes.contacts"}
+STUBS = {"mjstamp.solve", "mjstamp.scenes.contacts", "mjstamp.scenes.distance"}
 # Names of the public face (mjstamp/__init__.py), not modules, when imported from mjstamp.
 FACE = {"Scene", "SolveConfig", "Task", "configure", "costs", "load", "solve", "DEFAULT_CACHE"}
 

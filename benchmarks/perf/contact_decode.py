@@ -127,7 +127,7 @@ def _jax(m, qpos, touch, repeats: int) -> dict:
 
     from mjstamp.errors import MjstampError
     from mjstamp.kinematics import poses
-    from mjstamp.scenes.distance import make_distance_fn
+    from mjstamp.distance import make_distance_fn
 
     try:
         fn = make_distance_fn(m, 0, 1)

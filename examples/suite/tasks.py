@@ -376,7 +376,7 @@ def cans() -> Task:
     θ = where each can is let go across the ramp (y of can a, then can b, in
     m; both start at rest). Task plan = whether the cans touch each other,
     and which can ends in which zone. N.B. the blocks cannot be symbols:
-    mjstamp.scenes.distance has no cylinder-box signed distance.
+    mjstamp.distance has no cylinder-box signed distance.
     """
     scene = _scene("cans")
     task = Task("cans", scene, horizon=_steps(scene, 2.5),

@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 
 from mjstamp.errors import MjstampError
-from mjstamp.scenes.distance import UnsupportedPairError, make_distance_fn
+from mjstamp.distance import UnsupportedPairError, make_distance_fn
 
 
 class Kind(enum.StrEnum):

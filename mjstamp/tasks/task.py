@@ -32,7 +32,7 @@ import numpy as np
 from mjstamp import kinematics, svgd
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
-from mjstamp.scenes.distance import UnsupportedPairError
+from mjstamp.distance import UnsupportedPairError
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks import costs
 from mjstamp.tasks import fingerprint as fp
