@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from mjstamp import kinematics, solve, verify
+from mjstamp.distance import make_distance_bound
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import Scene
-from mjstamp.distance import make_distance_bound
 from mjstamp.tasks import Task, costs
 from mjstamp.tasks.problem import Rollout
 

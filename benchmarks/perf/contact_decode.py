@@ -125,9 +125,9 @@ def _jax(m, qpos, touch, repeats: int) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
+    from mjstamp.distance import make_distance_fn
     from mjstamp.errors import MjstampError
     from mjstamp.kinematics import poses
-    from mjstamp.distance import make_distance_fn
 
     try:
         fn = make_distance_fn(m, 0, 1)

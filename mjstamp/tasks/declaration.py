@@ -12,8 +12,8 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
-from mjstamp.errors import MjstampError
 from mjstamp.distance import UnsupportedPairError, make_distance_fn
+from mjstamp.errors import MjstampError
 
 
 class Kind(enum.StrEnum):

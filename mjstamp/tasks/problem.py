@@ -31,9 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjstamp import kinematics, relax, svgd
+from mjstamp.distance import UnsupportedPairError, make_distance_fn
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
-from mjstamp.distance import UnsupportedPairError, make_distance_fn
 from mjstamp.scenes.rollout import set_columns
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable, distance_fn

@@ -30,9 +30,9 @@ import jax
 import numpy as np
 
 from mjstamp import kinematics, svgd
+from mjstamp.distance import UnsupportedPairError
 from mjstamp.errors import MjstampError
 from mjstamp.scenes import uncertainty
-from mjstamp.distance import UnsupportedPairError
 from mjstamp.scenes.scene import Scene
 from mjstamp.tasks import costs
 from mjstamp.tasks import fingerprint as fp

@@ -20,10 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from mjstamp import kinematics
+from mjstamp.distance import make_distance_bound
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.parallel import local_device
 from mjstamp.scenes import mjx
-from mjstamp.distance import make_distance_bound
 from mjstamp.scenes.rollout import replay as replay_c
 from mjstamp.tasks.problem import FIELDS, Decoded, Poses, Rollout, as_problem
 
