@@ -62,3 +62,4 @@ def moved_attribute(module: str, name: str, new: str):
     value = getattr(importlib.import_module(new), name)
     setattr(sys.modules[module], name, value)  # N.B. one line: `from m import name` asks twice
     return value
+

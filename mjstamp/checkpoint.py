@@ -247,3 +247,14 @@ def describe(meta: Mapping[str, Any]) -> str:
     """'SVGD iteration 12 (saved 2026-12-02T01:02:03)' of a checkpoint's meta."""
     return (f"{_PHASES.get(meta.get('phase'), '?')} iteration {meta.get('iteration')} "
             f"(saved {meta.get('saved_at', '?')})")
+
+
+def task_of(checkpoint: Path) -> object:
+    """The task named in a checkpoint's `meta` (a JSON string), or None if unreadable."""
+    try:
+        with np.load(checkpoint, allow_pickle=False) as f:
+            meta = f["meta"].item()
+        meta = meta.decode() if isinstance(meta, bytes) else meta
+        return json.loads(meta).get("task")
+    except Exception:  # noqa: BLE001 - a damaged checkpoint only costs us the task's name
+        return None

@@ -10,7 +10,7 @@ contribute command-line options of `mjstamp solve` (pushing's `--max-pushes`)
 and commands (`mjstamp skills`). The shipped tasks (`mjstamp.tasks.billiards`,
 `pushing`, `jaco`) are found by name, as a plug-in would be.
 
-May import: config and errors (and `tasks.Task` for type checking only): the
+May import: config and errors. A factory returns a `mjstamp.tasks.Task`; the
 task modules import the registry to register, never the other way round.
 """
 
@@ -19,13 +19,14 @@ from __future__ import annotations
 import dataclasses
 import importlib
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from mjstamp.config import FLAT_NAMES, SolveConfig
 from mjstamp.errors import MjstampError, valid_list
 
-if TYPE_CHECKING:
-    from mjstamp.tasks import Task
+# N.B. a factory's result is a `mjstamp.tasks.Task`, typed here as Any: the registry
+# sits below tasks/ (task modules import it to register).
+_Task = Any
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +63,7 @@ class Entry:
 
     name: str
     default_config: Callable[[], dict]
-    make: Callable[[dict], Task]
+    make: Callable[[dict], _Task]
     summary: str
     solve_config: Callable[[], dict]
     options: tuple[Option, ...]
@@ -95,7 +96,7 @@ def register(
       commands: `mjstamp` commands this task contributes.
     """
 
-    def wrap(make: Callable[[dict], Task]):
+    def wrap(make: Callable[[dict], _Task]):
         _REGISTRY[name] = Entry(name, default_config, make, summary,
                                 solve_config or dict, tuple(options), tuple(commands))
         return make
@@ -141,7 +142,7 @@ def solve_config(name: str) -> SolveConfig:
     return SolveConfig.from_dict(_entry(name).solve_config())
 
 
-def load(name: str, **overrides) -> tuple[Task, SolveConfig]:
+def load(name: str, **overrides) -> tuple[_Task, SolveConfig]:
     """Builds a registered task; returns (task, its solve settings).
 
     Each override is a task setting or a solve setting (`SolveConfig.from_dict`'s

@@ -16,6 +16,7 @@ import numpy as np
 from mjstamp import colliders, results, svgd, verify
 from mjstamp.fileio import write_atomic
 from mjstamp.progress import ProgressLike
+from mjstamp.solver.summary import summarize, to_arrays
 from mjstamp.tasks import Problem
 from mjstamp.tracecache import cached_jit
 
@@ -121,12 +122,12 @@ class SolveResult:
         return self.returned & self.verified.ok
 
     def summary(self, coverage: dict | None = None) -> dict:
-        """JSON-ready summary, the body of plans.json (`results.summarize`)."""
-        return results.summarize(self, coverage)
+        """JSON-ready summary, the body of plans.json (`solver.summary.summarize`)."""
+        return summarize(self, coverage)
 
     def arrays(self) -> dict[str, dict[str, np.ndarray]]:
-        """Arrays of particles.npz and trajectories.npz (`results.to_arrays`)."""
-        return results.to_arrays(self)
+        """Arrays of particles.npz and trajectories.npz (`solver.summary.to_arrays`)."""
+        return to_arrays(self)
 
     def save(self, out: str | Path, *, figures: bool = True, coverage: dict | None = None,
              progress: ProgressLike = None) -> list[Path]:
@@ -141,7 +142,8 @@ class SolveResult:
         """
         from mjstamp import figures as figures_mod  # noqa: PLC0415 - matplotlib only here
 
-        written = results.write(self, out, coverage=coverage)
+        written = results.write(out, self.summary(coverage), self.arrays(),
+                                model=self.problem.scene.m)
         if figures and written:
             written += figures_mod.save_figures(self, Path(out), progress=progress,
                                                 jit=problem_jit(self.problem))

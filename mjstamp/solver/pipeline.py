@@ -42,6 +42,7 @@ from mjstamp.solver.outcome import (
     problem_jit,
 )
 from mjstamp.solver.selection import keep_screened, keep_visited, select_robust, take_or_give_back
+from mjstamp.solver.summary import group
 from mjstamp.tasks import Problem, Task, as_problem
 from mjstamp.version import __version__
 
@@ -645,7 +646,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         initial_theta=theta0_np, cost=outcome.cost, returned=returned, repaired=repaired,
         predicted=outcome.predicted, verified=outcome.verified, replay=outcome.replay,
         diagnostics=stamp.diagnostics, stamp=stamp,
-        rows=results.group(outcome.cost, returned, outcome.predicted, outcome.verified,
+        rows=group(outcome.cost, returned, outcome.predicted, outcome.verified,
                              repaired, None if robust is None else robust["success"]),
         timings=_timings(clock), fidelity=report,
         screen=None if screen is None else screen.as_dict(), source=source,
