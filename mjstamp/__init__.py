@@ -47,9 +47,9 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
     N.B. float64 is the default precision: float32 reverse-mode gradients
     through MJX's constraint solver go NaN on contact (see
     `mjstamp.scenes.gradsafe`), and float32 is no faster on a CPU. The
-    persistent compilation cache turns a 20-45 s compile of an MJX rollout into
-    a few seconds in the next process ($JAX_COMPILATION_CACHE_DIR, else
-    ~/.cache/mjstamp/jax).
+    persistent compilation cache lets the next process load an MJX rollout's
+    compiled code instead of compiling it again ($JAX_COMPILATION_CACHE_DIR,
+    else ~/.cache/mjstamp/jax).
 
     Args:
       precision: "float64" or "float32".
@@ -74,13 +74,10 @@ def configure(*, precision: str = "float64", compilation_cache: bool = True,
       cpu_fusion_emitters: XLA's CPU fusion emitters (its default: on). Off
         here unless $XLA_FLAGS says otherwise, and only before JAX starts: on
         a deep body tree they recompute shared work (the kinematics chain) in
-        every fused consumer. Measured on a 2-core CPU: the Jaco arm's vmapped
-        `mjx.step` 20.2 -> 0.64 ms per particle-step, its value-and-gradient
-        20.9 -> 2.8 ms, same outputs to 1e-17; off against on, value-and-
-        gradient speed billiards 0.95x, pachinko 1.06x, arm_strike 1.28x,
-        compile 1.45x, 1.49x, 0.82x faster (`benchmarks/perf/
-        fusion_emitters.py`). N.B. last-bit differences can move a chaotic
-        rollout's plans: a seed's plans are those of one setting.
+        every fused consumer; see benchmarks/results/README.md, "Measurements
+        quoted from the code". N.B. the two settings differ in the last bits,
+        which can move a chaotic rollout's plans: a seed's plans are those of
+        one setting.
     """
     from mjstamp.errors import MjstampError  # noqa: PLC0415
 

@@ -73,11 +73,10 @@ class ScreenConfig:
     Attributes:
       candidates: seed the particles from `candidates · particles` draws of the
         prior replayed in MuJoCo C, spread over the task plans they reach; 1
-        draws them from the prior directly. 64: a forward C replay costs ~1.4 µs
-        a step against 25-400 µs for STAMP's value and gradient, so 64
-        candidates per particle cost a few per cent of STAMP's 100+ iterations
-        on any scene, and find task plans as rare as 1/3000 of the box
-        (billiards: all 16 at seeds 0-2, against 15 with 16 candidates).
+        draws them from the prior directly. 64: a forward C replay costs a small
+        fraction of STAMP's value and gradient, so 64 candidates per particle
+        cost a few per cent of STAMP's 100+ iterations, and find rare task
+        plans (billiards: all 16) that fewer candidates miss.
       rescue_near: share of the re-drawn particles (stall rescue and non-finite
         ones, `stamp.rescue_window`, `stamp.nonfinite_redraw`) placed near a
         success of the screen, with noise of `stamp.svgd_step` box widths, their
@@ -230,7 +229,7 @@ class LandingConfig:
     model: where a scene's outcome is rough at fine scales (contacts on a step
     grid), the exact derivative predicts nothing at a step's scale and the
     polish in the gradient model (`polish`) crawls; central differences in C at
-    the step's own scale do not, at a few µs a step. Idle where the task
+    the step's own scale do not, and C rollouts are cheap. Idle where the task
     declares no residual costs.
 
     Attributes:
@@ -246,8 +245,7 @@ class LandingConfig:
       sgd_max_iters: where the landing runs, the SGD phase stops after at
         most this many iterations: Gauss–Newton refines in its place (Adam at
         a fixed step circles an optimum at its step's scale); None: as
-        `stamp.sgd_max_iters`. Measured on billiards (seed 0, 2-core CPU):
-        16 of 16 task plans at 20 and at 80 SGD iterations, in 10 s less.
+        `stamp.sgd_max_iters`.
     """
 
     iterations: int = 20

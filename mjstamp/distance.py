@@ -73,14 +73,13 @@ largest difference there). Float32 adds rounding only (≤ 1.3e-7 seen).
   N.B. ``mj_geomDistance`` on a height field raises each prism's top by its
   distmax, so with a large distmax it misreports penetration (0.1 off seen).
 
-Cost, per evaluation (vmapped over 1000 poses on a shared 2-core CPU):
-closed forms about 1 µs; sphere or capsule vs mesh a few µs; the direction
-search 0.07-0.15 ms; box-mesh 0.17 ms and mesh-mesh 0.5 ms for the tests'
-14-vertex hull (it grows with the hull's edges squared); a height field its
-partner's per-prism cost times the 2·rows·cols prisms of the window: with the
-tests' 32 prisms, 0.16 ms (sphere) to 4.7 ms (mesh). N.B. a fine height field
-under a large geom is costly: the window grows as (2·rbound / cell size)².
-Gradients cost about as much as values.
+Cost, per evaluation: closed forms are the cheapest, then sphere or capsule vs
+mesh, then the direction search; box-mesh and mesh-mesh grow with the hull's
+edges squared; a height field costs its partner's per-prism cost times the
+2·rows·cols prisms of the window. N.B. a fine height field under a large geom
+is costly: the window grows as (2·rbound / cell size)². Gradients cost about
+as much as values. Timings: benchmarks/results/README.md, "Measurements
+quoted from the code".
 
 Gradients: every branch uses safe norms (the double-``where`` trick); the
 direction search differentiates through witness points held fixed (envelope
@@ -1323,7 +1322,7 @@ def make_distance_bound(
     other geom's sphere above it). Where ℓ > 0 the geoms are at least ℓ apart, so no
     collider can report a contact at zero margin; `verify.Replay` asks MuJoCo C
     (`mjstamp.kinematics.touching`) only at the other states. A few flops
-    per pair, where the signed distance of a curved pair costs 0.1 ms.
+    per pair, far fewer than the signed distance of a curved pair.
 
     Args:
       m: the model.

@@ -134,7 +134,7 @@ def touching(m: mujoco.MjModel, qpos: np.ndarray, pairs, candidates=None) -> np.
     rows = np.flatnonzero(ask.any(axis=1))
     d = mujoco.MjData(m)
     # N.B. one kinematics per state for all its pairs, and plain Python lists in the
-    # loop: the bindings' call overhead (about 0.3 µs a call) is most of the cost.
+    # loop: the bindings' call overhead is most of the cost.
     for i, row in zip(rows.tolist(), ask[rows].tolist(), strict=True):
         d.qpos[:] = flat[i]
         mujoco.mj_kinematics(m, d)

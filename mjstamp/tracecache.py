@@ -2,7 +2,7 @@
 
 JAX's persistent compilation cache skips XLA compilation in a second process,
 but not tracing: tracing and differentiating a scan of `mjx.step` still takes
-5-10 s on a 2-core CPU before the cache can even be consulted. This module
+seconds before the cache can even be consulted. This module
 stores the lowered StableHLO of a jitted function (`jax.export`) keyed by
 everything it depends on, so a later process deserialises it in milliseconds
 and only the (persistently cached) compilation remains.

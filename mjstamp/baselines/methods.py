@@ -22,8 +22,8 @@ cem scores its populations with the same MJX rollouts, forward only, at Γ(θ)
 (`rollouts="mjx"`, the default), and replays each population in MuJoCo C to
 verify it (counted in its time). With `rollouts="c"` it scores the C replays
 themselves (the task's costs on them, `verify.cost_c`): on a CPU the C forward
-is several times cheaper than MJX's (1.4 us against 8-40 us per
-particle-step), so this is what a user without a GPU would do. Population 128
+is several times cheaper than MJX's, so this is what a user without a GPU
+would do. Population 128
 (STAMP's particles), elites 10%, at most 20 generations per restart, restart
 when the elites' spread is below 1% of every box width; each restart starts
 from a uniform mean and half-width spreads.

@@ -24,17 +24,17 @@ contact's ``includemargin`` holds what C passes its colliders, margin + gap.
 
 Which ports a Scene installs. Every port gives C's contacts (`benchmarks/perf/contacts.py`:
 10,000 random poses per pair), but those through C's GJK/EPA (`convex`) cost
-0.7-2 ms per pair-collision on the 2-core CPU against MJX's 0.3-20 µs: their
-loops run a fixed number of trips so that reverse-mode AD goes through. Where
-MJX has no function (cylinder-box, ellipsoid-box, cylinder- and
-ellipsoid-mesh) or a wrong one (its 10-step signed-distance descent for
-cylinder and ellipsoid pairs: contacts off by 6-34 cm on 4-6% of poses) the
-port is installed anyway. For the four mesh pairs MJX collides with its own
-convex routines (sphere-, capsule-, box- and mesh-mesh, measured off C on
-0.1-30% of poses), MJX's function stays by default: those pairs are reported
-as approximate (`approximate_pairs`, `mjstamp check`, the solve's fidelity
-check and warning), and `exact_meshes()` installs C's for them (a price of
-roughly a thousand on those pairs' collisions).
+orders of magnitude more per pair-collision than MJX's routines: their loops
+run a fixed number of trips so that reverse-mode AD goes through. Where MJX
+has no function (cylinder-box, ellipsoid-box, cylinder- and ellipsoid-mesh)
+or a wrong one (its 10-step signed-distance descent for cylinder and
+ellipsoid pairs, whose contacts part from C's) the port is installed anyway.
+For the four mesh pairs MJX collides with its own convex routines (sphere-,
+capsule-, box- and mesh-mesh, off C on some poses), MJX's function stays by
+default: those pairs are reported as approximate (`approximate_pairs`,
+`mjstamp check`, the solve's fidelity check and warning), and
+`exact_meshes()` installs C's for them, at the GJK/EPA ports' price. The
+measurements: benchmarks/results/README.md, "Measurements quoted from the code".
 
 May import: mujoco, mujoco.mjx, jax, numpy, and of mjstamp only `_mjx` and
 `errors`: the colliders sit below `scenes/`, which installs them.

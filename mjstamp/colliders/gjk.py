@@ -1386,8 +1386,7 @@ def ccd_converged(k1: Kind, k2: Kind, o1: Obj, o2: Obj, *, max_contacts: int,
     and normal within 1e-6 on random poses) for pairs of boxes, meshes,
     spheres and capsules (`CONVERGED_KINDS`). Not for cylinders and
     ellipsoids: there the contact slides over a surface curved in two ways
-    as the normal turns, which material points and one support leave out
-    (cylinder-box: positions and normals off by up to 100% on 1 pose in 3);
+    as the normal turns, which material points and one support leave out;
     their pairs keep `ccd`.
 
     Args: as `ccd`.

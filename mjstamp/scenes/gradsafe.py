@@ -49,22 +49,21 @@ target expression must be found exactly once, so an MJX upgrade that changes
 these lines makes ``patch_mjx`` fail loudly instead of silently patching the
 wrong thing.
 
-Recommended options for gradient rollouts (measured on planar billiards, two
-balls of radius 0.03, 256 shots, 150-300 steps; see the integration report):
+Recommended options for gradient rollouts (found on planar billiards; the
+numbers are in benchmarks/results/README.md, "Measurements quoted from the code"):
 
 * ``opt.iterations = 1`` (required: reverse mode cannot go through the
   solver's ``while_loop``), ``opt.ls_iterations >= 4`` (``ls_iterations=1``
-  leaves the single Newton step unconverged; 95th-percentile gradient norm
-  went from 4e3 to 4e5 and the max to 3e11 over 300 steps).
+  leaves the single Newton step unconverged, and gradient norms explode).
 * ``solver="Newton"``, ``cone="pyramidal"``: cheapest, and the condim-3
   pyramidal path needs only culprit #2 fixed. Elliptic cones need this patch
   in *any* precision.
-* Contact ``solref="0.05 1"`` (timeconst >= 5 dt for dt = 0.01): the default
-  0.02 lets 10% of 300-step shots exceed gradient norm 1e3; 0.05 -> 3%,
-  0.1 -> 0.8%. Add slide-joint ``damping`` ~0.05 (rolling-resistance proxy):
-  95th-percentile norm 33 -> 1.5 at timeconst 0.05.
-* float32 + ``patch_mjx()``; float64 costs ~1.9x per shot-step on CPU and
-  still needs the patch for elliptic cones.
+* Contact ``solref="0.05 1"`` (timeconst >= 5 dt for dt = 0.01): a stiffer
+  contact (the default 0.02) lets more long shots' gradient norms blow up.
+  Add slide-joint ``damping`` ~0.05 (rolling-resistance proxy), which tames
+  them further.
+* ``patch_mjx()`` in either precision: float32 needs it on any contact,
+  float64 for elliptic cones.
 
 Typical use::
 
@@ -264,11 +263,9 @@ def _implicit_solve(m, d):
 
     N.B. why not unrolled iterations: under vmap every particle runs every trip
     of a fixed-count loop, and reverse mode stores each; this loop stops when the
-    slowest particle has converged and reverse mode goes through one Newton step.
-    Measured (benchmarks/perf/gradient_modes.py, float64, 32-128 particles): as exact
-    as 4-8 unrolled iterations against finite differences of the scene's own
-    physics (median 5e-10 to 1.4e-9, the finite differences' own floor), at
-    0.8-1.5x the cost of one unrolled iteration and 0.3-0.5x that of four.
+    slowest particle has converged and reverse mode goes through one Newton step,
+    as exact as several unrolled iterations at about the cost of one
+    (`benchmarks/perf/gradient_modes.py`; see benchmarks/results/README.md).
     """
     from mujoco.mjx._src import solver  # pylint: disable=g-import-not-at-top
 

@@ -136,12 +136,11 @@ def _lands(problem: Problem, cfg: SolveConfig) -> bool:
 def polish_iterations(cfg: SolveConfig) -> int:
     """`polish.max_iters` resolved: None is 20 where JAX runs on an accelerator, 0 on a CPU.
 
-    N.B. measured on the 2-core CPU (README, "Precision"): on billiards' table the
-    outcome is rough at the scale of a goal (the derivative is exact, AD against
-    central differences at 1e-5, and predicts nothing at 1e-3), so Levenberg–Marquardt
-    in MJX lands few particles at 0.3-0.5 s a step, where the landing in C lands more
-    for a fifth of that; on an accelerator a batch of MJX rollouts costs about what
-    one does, and the polish is cheap beside it.
+    N.B. off on a CPU: where the outcome is rough at the scale of a goal (billiards'
+    table: the exact derivative predicts nothing there), Levenberg–Marquardt in MJX
+    lands fewer particles than the landing in C, at a higher cost a step (README,
+    "Precision"); on an accelerator a batch of MJX rollouts costs about what one
+    does, and the polish is cheap beside it.
     """
     if cfg.polish.max_iters is not None:
         return cfg.polish.max_iters

@@ -9,8 +9,8 @@ Choices (and why):
 - velocity box [-4, 4]² m/s: fast enough for two or three cushions within the
   horizon, slow enough that no contact lasts less than about 4 steps;
 - horizon 150 steps of 10 ms: in 1.5 s a MuJoCo C sweep of the box finds 8
-  wall codes (16 task plans) that pocket the target; 2 s finds 14 codes but
-  costs a third more per iteration;
+  wall codes (16 task plans) that pocket the target; a longer horizon finds
+  more codes but costs more per iteration;
 - soft wall indicators with α = 100 /m, β = 0: an indicator is 1/2 at touching
   distance and saturates within about 5 cm, wider than one step of travel at
   4 m/s, so the indicator is smooth in θ;
@@ -24,8 +24,8 @@ Choices (and why):
   half of them did at 0.02 m); 0.2 m lets later, closer passes pull;
 - 128 particles, at most 40 SVGD then 80 SGD iterations (Adam, 0.05 then
   0.02): SVGD spreads the particles over the modes, and the long SGD phase
-  lets the narrow modes (0.05-0.3% of the box each) converge; with 40 + 40 or
-  a sharper aim softmin fewer than 8 wall codes were verified (seed 0).
+  lets the narrow modes (0.05-0.3% of the box each) converge; a shorter SGD
+  phase or a sharper aim softmin verifies fewer wall codes.
 """
 
 from __future__ import annotations

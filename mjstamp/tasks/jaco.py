@@ -23,9 +23,7 @@ on that line: "near" (the brick pushed 4-7 cm) and "post" (9-12 cm, up to
 the post's face). The task plan is the contact symbols (the hand's fist proxy
 touched the brick; the brick touched the post) and the goal region the brick
 ends in: uniform shots over θ reach 10-near, 10-post and 11-post (a plan
-that parks the brick against the post, or short of it). Measured (1,024
-uniform shots, seed 0, MuJoCo C): 17% succeed at 2 ms steps (11.1% near,
-3.1% and 3.1% post), 17% at 5 ms (10.8%, 2.8%, 3.3%).
+that parks the brick against the post, or short of it).
 
 Choices (and why):
 - collisions as dm_control sets them, pruned for MJX: the arm's links collide
@@ -39,36 +37,34 @@ Choices (and why):
   not run; the C replay must run the physics MJX plans with;
 - the finger meshes' convex hulls capped at 24 vertices (`maxhullvert`; as
   shipped 156 and 213): MuJoCo C and MJX both collide a mesh by its hull; the
-  cap cut the MJX step's compile from 51 s to about 7 s and its time by
-  almost half, while the three known plans still succeed in C;
+  cap makes the MJX step cheaper to compile and to run, while the three task
+  plans still succeed in C;
 - 5 ms steps (dm_control's: 2 ms), 240 of them (1.2 s): MJX's cost is per
-  step, and MuJoCo C finds the same task plans in the same shares at 2, 4, 5
-  and 8 ms (above); at 36°/s the fingertips sweep about 0.3 m/s, enough to
+  step, and MuJoCo C finds the same task plans in about the same shares at
+  2 ms as at 5 ms; at 36°/s the fingertips sweep about 0.3 m/s, enough to
   push the brick 15-20 cm in 1.2 s;
 - the shoulder and elbow pitch knots are bounded by ±0.2 rad/s, not their
   servos' ±0.63: faster pitching lifts the fist off the table (or presses it
   in) within the horizon, and pushes nothing;
 - the goals lie along the sweep: with the servos' speed limits the brick's
   end point spreads ±4 cm across the sweep and 0-12 cm along it in 1.2 s;
-- solve settings: 8 particles, at most 5 SVGD and 10 SGD iterations: one
-  value-and-gradient costs about 9-12 ms per particle-step here (MJX's own
-  solver to convergence, 3-9 Newton iterations a step, with its line search;
-  0.64 ms is the step alone without them), so each iteration costs tens of
-  seconds; the seeding screen (512 shots in C) already starts 5-6 of the 8
-  particles on successes of all three task plans (seeds 0-2), and the
-  gradient steps refine them.
-
-What a real model needed (found on this one):
-- XLA's CPU fusion emitters recompute the kinematic chain in every fused
-  consumer: `mjx.step` cost 20 ms per particle-step on this arm against
-  0.64 ms with them off, which `mjstamp.configure` now does;
+- solve settings: 8 particles, at most 5 SVGD and 10 SGD iterations: the
+  value and gradient run MJX's own solver to convergence with its line search
+  every step, so an iteration costs far more than on the small scenes; the
+  seeding screen (512 shots in C) already starts most of the 8 particles on
+  successes of all three task plans, and the gradient steps refine them;
 - calibration: a pushed brick sticks or slips depending on where the solver
-  starts; MJX's solver without warm start parted from the scene's physics by
-  3.3-4.2 mm p95 (tolerance 0.95 mm), and calibration's last candidate (the
-  MJCF's own line search and warm start) follows it exactly;
-- a finger mesh against the brick as a symbol needed the hull enumerated in
-  the C replay's pose pass (83 GB for 64 x 600 states): symbols and the aim
-  cost read a sphere proxy round the closed fingers instead.
+  starts, so MJX's solver without warm start parts from the scene's physics
+  beyond the fidelity tolerance; calibration's last candidate (the MJCF's own
+  line search and warm start) follows it exactly;
+- symbols and the aim cost read a sphere proxy round the closed fingers (a
+  closed form), not a finger mesh against the brick: that needs the hull
+  enumerated in the C replay's pose pass, which runs out of memory on it;
+- XLA's CPU fusion emitters recompute the kinematic chain in every fused
+  consumer, at a large cost on this arm: `mjstamp.configure` turns them off.
+
+Measurements behind these choices: benchmarks/results/README.md,
+"Measurements quoted from the code".
 """
 
 from __future__ import annotations
@@ -171,7 +167,7 @@ def compose(config: dict | None = None):
     # A contact proxy (collides with nothing): the sphere round the fingers' lower
     # halves. Symbols and the aim cost read its signed distance to the brick, a
     # closed form, where a finger mesh against the brick needs the hull enumerated
-    # (the C replay's pose pass ran out of memory on it: 83 GB for 64 x 600 states).
+    # (the C replay's pose pass runs out of memory on it).
     hand.mjcf_model.find("body", "hand").add(
         "geom", name="fist", type="sphere", size=(FIST_RADIUS,), pos=FIST_POS, mass=0,
         contype=0, conaffinity=0, group=3, rgba=(1, 1, 1, 0.15))

@@ -34,11 +34,9 @@ Choices (and why):
   with the sides fixed (App. E); the library's 50 SVGD + 100 SGD iterations
   (Adam 0.03, then 0.02): SVGD spreads the sides and goals and, since its
   backtracking holds each particle within d/2 nats of its peak at Γ, lowers
-  the mean cost by 39-52% of the whole decrease at seeds 0-2 (K = 2, 64
-  particles, 10 verified push sequences each); SGD at Γ is where plans
-  converge. With 20 SVGD iterations the share was 25-44%; before the guard
-  held particles to their peak, longer SVGD raised the mean cost at Γ (the
-  blended references of Γ̃ are poor plans);
+  the mean cost by a large share of the whole decrease (without that guard,
+  longer SVGD would raise the mean cost at Γ: the blended references of Γ̃
+  are poor plans); SGD at Γ is where plans converge;
 - goal yaws start within ±0.3 rad: the block's four sides make yaw ambiguous
   beyond ±π/4 and the servos push at side centres.
 """

@@ -19,9 +19,9 @@ where it held one already, so landing deepens a plan and never swaps it for
 another particle's) and stops once one is within `depth` of its goals'
 tolerances (landed), when ρ falls below `min_radius`, or after `iterations`.
 
-Cheap where it matters: a C rollout costs a few µs a step against ~100 times
-that for an MJX value and gradient, so 20 iterations of a 2-D plan (5
-rollouts each) cost less than one STAMP iteration's gradient.
+Cheap where it matters: a C rollout costs a small fraction of an MJX value and
+gradient, so 20 iterations of a 2-D plan (5 rollouts each) cost less than one
+STAMP iteration's gradient.
 """
 
 from __future__ import annotations

@@ -151,9 +151,8 @@ class Replay(Poses):
         N.B. the first call for a declaration and precision compiles MJX
         kinematics with every relaxed pair's JAX distance (`_distances_fn`: no
         compiled function of the solve computes them on states; seconds on a
-        CPU, about 15 s for the cans task), and each new power of two of near
-        states compiles again (`_batched`); a caller that needs it for a few
-        plans takes `rows` first.
+        CPU), and each new power of two of near states compiles again
+        (`_batched`); a caller that needs it for a few plans takes `rows` first.
         """
         problem, (n, T) = self.problem, self.qpos.shape[:2]
         compared = [k for k, c in enumerate(problem.contacts) if problem.relaxes(c)]
