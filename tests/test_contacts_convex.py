@@ -19,7 +19,7 @@ import pytest
 from mujoco.mjx._src.collision_types import GeomInfo
 
 from mjstamp import colliders
-from mjstamp.colliders import compare, convex, gjk
+from mjstamp.colliders import ccd, compare, convex, gjk
 
 GJK_PAIRS = ["capsule-cylinder", "cylinder-cylinder", "cylinder-box", "sphere-ellipsoid",
              "capsule-ellipsoid", "ellipsoid-ellipsoid", "ellipsoid-cylinder", "ellipsoid-box",
@@ -188,14 +188,14 @@ def _parts(pair_fn, k1, k2):
 @pytest.mark.slow
 @pytest.mark.parametrize("pair", ["box-mesh", "capsule-mesh"])
 def test_converged_gradients_match_central_differences(pair):
-    """`gjk.ccd_converged`'s rebuild: distance, position and normal each as C's differences.
+    """`ccd.ccd_converged`'s rebuild: distance, position and normal each as C's differences.
 
     N.B. the sum `_objective` hides a wrong normal (it reads distances and
     positions only); a rebuild from material points alone missed positions and
-    normals on cylinder-box poses by up to 100% (why cylinders keep `gjk.ccd`).
+    normals on cylinder-box poses by up to 100% (why cylinders keep `ccd.ccd`).
     """
     t1, t2 = compare.parse_pair(pair)
-    assert {t1, t2} <= gjk.CONVERGED_KINDS
+    assert {t1, t2} <= ccd.CONVERGED_KINDS
     pm, poses = _poses(pair, 24, seed=3)
     f = _parts(colliders.PORTED[(t1, t2)].pair_fn, convex.kind_of(pm.m, 0),
                convex.kind_of(pm.m, 1))

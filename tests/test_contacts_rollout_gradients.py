@@ -1,4 +1,4 @@
-"""Rollout gradients through a pair `gjk.ccd_converged` differentiates, against MuJoCo C.
+"""Rollout gradients through a pair `ccd.ccd_converged` differentiates, against MuJoCo C.
 
 The per-pair tests (test_contacts_convex.py) check one collision's
 derivatives; a rollout chains hundreds of them through the solver. Here a
@@ -7,7 +7,7 @@ through `check_scene`: reverse-mode AD of a smooth function of the MJX
 rollout against central differences of the same function in float64 MuJoCo C.
 
 N.B. one scene per family is in benchmarks/perf/rollout_gradients.py: a
-cylinder or ellipsoid pair (`gjk.ccd`, AD through every GJK/EPA iteration)
+cylinder or ellipsoid pair (`ccd.ccd`, AD through every GJK/EPA iteration)
 takes minutes and gigabytes to compile in a rollout. The issue's cylinder
 puck ("AD against central differences 0.93") was MuJoCo C's own
 plane-cylinder contacts, which are not smooth at the difference step; `check`

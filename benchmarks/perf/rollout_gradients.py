@@ -21,7 +21,7 @@ Scenes:
 Usage: python benchmarks/perf/rollout_gradients.py [--scenes a,b] [--particles 8]
        [--save FILE]
 N.B. a cylinder or ellipsoid scene compiles for minutes (AD through every
-GJK/EPA iteration, `gjk.ccd`).
+GJK/EPA iteration, `ccd.ccd`).
 """
 
 from __future__ import annotations

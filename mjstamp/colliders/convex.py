@@ -2,7 +2,7 @@
 
 MuJoCo C collides cylinders, ellipsoids and meshes (except with planes and the
 primitive pairs) through `mjc_Convex` (engine_collision_convex.c): native GJK/EPA
-(`gjk.ccd`) with, in the installed 3.17 binary, no perturbation passes for geom
+(`ccd.ccd`) with, in the installed 3.17 binary, no perturbation passes for geom
 pairs but `mjc_multicontact` (`gjk_multi`) for cylinder, box and mesh pairs (up
 to 4 contacts) and for a capsule against those (2). MJX 3.17 instead runs a
 10-step signed-distance descent (cylinders, ellipsoids) or its own SAT manifold
@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 
 from mjstamp import colliders
-from mjstamp.colliders import gjk
+from mjstamp.colliders import ccd, gjk
 from mjstamp.colliders.gjk import (
     BOX,
     CAPSULE,
@@ -175,9 +175,9 @@ def pair_contacts(k1: Kind, k2: Kind, info1, info2, margin, *, ncon: int,
     Returns:
       contacts in C's order, unused slots at `contacts.FAR`.
 
-    Pairs of boxes, meshes, spheres and capsules take `gjk.ccd_converged` (the
-    derivatives of `gjk.ccd` at a fraction of its cost); pairs with a cylinder
-    or an ellipsoid differentiate through every iteration (`gjk.ccd`).
+    Pairs of boxes, meshes, spheres and capsules take `ccd.ccd_converged` (the
+    derivatives of `ccd.ccd` at a fraction of its cost); pairs with a cylinder
+    or an ellipsoid differentiate through every iteration (`ccd.ccd`).
     """
     if disableflags & _NATIVECCD:
         raise NotImplementedError("libccd (nativeccd disabled) is not ported")
@@ -186,9 +186,9 @@ def pair_contacts(k1: Kind, k2: Kind, info1, info2, margin, *, ncon: int,
     o2 = Obj(info2.pos, info2.mat.reshape(3, 3), info2.size, margin)
     maxc = max_contacts(k1.gtype, k2.gtype, disableflags)
     with gjk.exact(info1.pos):
-        converged = {k1.gtype, k2.gtype} <= gjk.CONVERGED_KINDS
-        ccd = gjk.ccd_converged if converged else gjk.ccd
-        r = ccd(k1, k2, o1, o2, max_contacts=maxc)
+        converged = {k1.gtype, k2.gtype} <= ccd.CONVERGED_KINDS
+        run = ccd.ccd_converged if converged else ccd.ccd
+        r = run(k1, k2, o1, o2, max_contacts=maxc)
         n = r.dist.shape[0]
         pos = mul(r.x1 + r.x2, 0.5)
         nrm, _ = gjk.normalize3(r.x1 - r.x2)
