@@ -133,8 +133,7 @@ def spot(radius: float):
     """
     import jax.numpy as jnp
 
-    from mjstamp.scenes import Scene
-    from mjstamp.tasks import Task, costs
+    from mjstamp import Scene, Task, costs
     from mjstamp.tasks.billiards import WALLS
 
     scene = Scene.shipped("billiards")
@@ -317,8 +316,7 @@ def run_cmaes(task, config, budget_s: float, seed: int) -> dict:
 
 def _solve_record(task, config, seed: int, **stamp) -> dict:
     """`mjstamp.solve` at `config` (with `stamp` overrides), warmed up first; its record."""
-    from mjstamp import solve
-    from mjstamp.config import SolveConfig
+    from mjstamp import SolveConfig, solve
 
     cfg = SolveConfig.from_dict({"stamp": stamp}, base=SolveConfig.from_dict(config or {}))
     warm = SolveConfig.from_dict({"stamp": {"svgd_max_iters": min(1, cfg.stamp.svgd_max_iters),
@@ -368,7 +366,7 @@ def run_portfolio(task, config, budget_s: float, seed: int) -> dict:
     `sgd_max_iters` and `min_iters` halved, so the gradient phases take about
     half of what they take at the member's settings.
     """
-    from mjstamp.config import SolveConfig
+    from mjstamp import SolveConfig
 
     stamp = SolveConfig.from_dict(config or {}).stamp
     return _solve_record(task, {**(config or {}), "screen": {

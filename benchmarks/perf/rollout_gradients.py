@@ -143,8 +143,7 @@ KEYS = ("healthy", "faithful", "fd_smooth_particles", "rel_err_median", "rel_err
 
 def measure(name: str, particles: int) -> dict:
     """One scene's row: the check's verdict and numbers."""
-    from mjstamp import colliders
-    from mjstamp.scenes import Scene
+    from mjstamp import Scene, colliders
     from mjstamp.scenes.check import check_scene
 
     xml, spec = scenes()[name]

@@ -27,8 +27,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from mjstamp.scenes import Scene
-from mjstamp.tasks import Task, costs
+from mjstamp import Scene, Task, costs
 
 HERE = Path(__file__).resolve().parent
 
