@@ -20,7 +20,7 @@ import time
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -541,9 +541,8 @@ def solve(
     return result
 
 
-def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_every_s,
-           resume_hint) -> SolveResult:
-    """`solve`'s body."""
+def _setup(task, config, seed, progress):
+    """Checks the seed and devices; returns (problem, cfg, devices, say)."""
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
         raise MjstampError(f"seed={seed!r} must be an integer in 0..{MAX_SEED}")
     if progress is None and not parallel.is_lead():
@@ -555,10 +554,23 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     if jax.process_count() > 1 and devices != jax.device_count():
         raise MjstampError(f"devices={devices}: a solve over {jax.process_count()} processes "
                            f"shards over all their {jax.device_count()} devices (devices=None)")
-    say, clock = Progress.of(progress, "solve"), {"start": time.perf_counter()}
-    checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
-                                        checkpoint_every_s, resume_hint, say, devices)
-    found = Found(say, clock["start"])
+    return problem, cfg, devices, Progress.of(progress, "solve")
+
+
+class _Start(NamedTuple):
+    """The particles STAMP starts from, and what the screen found on the way."""
+
+    theta0: Any  # (n, d) as `_initial_particles` returns them (STAMP's input)
+    theta0_np: np.ndarray  # (n, d) float64
+    screen: Any  # the screen's report, or None
+    successes: dict[str, np.ndarray]  # {task plan: (m, d) verified in C, best first}
+    replay0: verify.Replay  # θ0's C replay, made once per solve
+    early: Any  # the early landing's report
+
+
+def _start(problem: Problem, cfg: SolveConfig, seed: int, say, found: Found,
+           clock: dict) -> _Start:
+    """The screen, its task plans recorded as found, and the early landing."""
     theta0, screen, successes, replay0 = _initial_particles(problem, cfg, seed, say)
     theta0_np = np.asarray(theta0, np.float64)
     if screen is not None:  # each at the end of the chunk that verified it
@@ -569,20 +581,37 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     early = _land_early(problem, cfg, theta0_np, replay0, screen, successes, say)
     found.add_pools(successes, "landed early")
     clock["early"] = time.perf_counter()
+    return _Start(theta0, theta0_np, screen, successes, replay0, early)
+
+
+def _calibrated(problem: Problem, cfg: SolveConfig, start: _Start, seed: int, say):
+    """The gradient model calibrated on θ0 and checked, and the problem's posterior set.
+
+    Returns:
+      (problem, calibration or None, the fidelity report, the final `_Evaluator`).
+    """
     calibration, report = None, {"calibrated": False}
     if cfg.calibration.enabled:
-        problem, calibration = calibrate(problem, theta0_np, cfg, progress=say, reference=replay0)
+        problem, calibration = calibrate(problem, start.theta0_np, cfg, progress=say,
+                                         reference=start.replay0)
         report = calibration.as_dict()
-    evaluate = _Evaluator(problem, theta0_np)
+    evaluate = _Evaluator(problem, start.theta0_np)
     if calibration is not None:
-        report.update(_check_mjx(problem, evaluate, theta0_np, calibration, say, replay0))
-    problem = _posterior(problem, cfg, screen, seed, say)
-    clock["calibrate"] = time.perf_counter()
+        report.update(_check_mjx(problem, evaluate, start.theta0_np, calibration, say,
+                                 start.replay0))
+    problem = _posterior(problem, cfg, start.screen, seed, say)
+    return problem, calibration, report, evaluate
+
+
+def _stamp_phase(problem: Problem, cfg: SolveConfig, start: _Start, seed: int, say, devices,
+                 checkpointer, snap, checkpoint_dir, found: Found, clock: dict):
+    """STAMP from θ0, checkpointed; an interrupted solve saves what it verified first."""
     cpu = time.process_time()
     try:
         with checkpointer.catch_signals() if checkpointer else contextlib.nullcontext():
-            stamp = _run_stamp(problem, cfg, theta0, seed, say, devices=devices,
-                               checkpointer=checkpointer, resume=snap, successes=successes,
+            stamp = _run_stamp(problem, cfg, start.theta0, seed, say, devices=devices,
+                               checkpointer=checkpointer, resume=snap,
+                               successes=start.successes,
                                deadlines=_deadlines(cfg, _stamp_config(cfg, problem, seed),
                                                     clock["start"]))
     except checkpoint_mod.Interrupted:
@@ -590,6 +619,26 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         raise
     clock["stamp"] = time.perf_counter()
     clock["stamp_cpu"] = time.process_time() - cpu
+    return stamp
+
+
+class _Final(NamedTuple):
+    """The particles a solve keeps before repair, and how it chose them."""
+
+    theta: np.ndarray  # (n, d)
+    source: np.ndarray  # (n,) where each particle's plan came from ("final", "landed", ...)
+    outcome: Outcome
+    visited: dict  # {name: (θ snapshot, its Outcome)}: "unpolished", "svgd", "initial"
+    svgd_theta: np.ndarray  # (n, d) at the end of the SVGD phase
+    loss: dict
+    polished: Any  # the polish's result, or None
+    landing: Any  # the landing's report
+    given_back: int  # polished particles given their unpolished state back
+
+
+def _final(problem: Problem, cfg: SolveConfig, stamp, start: _Start, evaluate: _Evaluator,
+           seed: int, say, devices, found: Found, clock: dict) -> _Final:
+    """Polish, evaluate and land STAMP's particles; keep the plans visited and screened."""
     theta = np.asarray(stamp.particles, np.float64)
     polished = _polish(problem, cfg, theta, say, devices)
     clock["polish"] = time.perf_counter()
@@ -608,7 +657,7 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     svgd_theta = np.asarray(stamp.svgd_particles, np.float64)
     # N.B. θ0's C replay is the one made before STAMP: replayed once per solve.
     visited.update({"svgd": (svgd_theta, evaluate(svgd_theta)),
-                    "initial": (theta0_np, evaluate(theta0_np, replay0))})
+                    "initial": (start.theta0_np, evaluate(start.theta0_np, start.replay0))})
     loss = loss_report({"initial": visited["initial"][1].cost,
                          "svgd": visited["svgd"][1].cost, "final": outcome.cost})
     if cfg.verify.keep_visited:
@@ -616,15 +665,34 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
         if (kept != "final").any():
             outcome = evaluate(theta)
         source = np.where(kept == "final", source, kept)
-        theta, source, outcome = keep_screened(theta, source, outcome, successes, evaluate)
+        theta, source, outcome = keep_screened(theta, source, outcome, start.successes,
+                                               evaluate)
     if cfg.robust.select:
         theta, source, outcome = select_robust(problem, cfg, theta, source, outcome,
-                                                successes, evaluate, seed, say)
+                                                start.successes, evaluate, seed, say)
     found.add(outcome.verified.plan[outcome.good], theta[outcome.good], "kept")
-    returned = outcome.predicted.ok & np.isfinite(outcome.cost)
     clock["verify"] = time.perf_counter()
-    theta, repaired, outcome = _repair(problem, cfg, theta, returned, outcome, evaluate, seed,
-                                       say)
+    return _Final(theta, source, outcome, visited, svgd_theta, loss, polished, landing,
+                  given_back)
+
+
+def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_every_s,
+           resume_hint) -> SolveResult:
+    """`solve`'s body: the stages in order, each timed on `clock`."""
+    problem, cfg, devices, say = _setup(task, config, seed, progress)
+    clock = {"start": time.perf_counter()}
+    checkpointer, snap = _checkpointing(problem, cfg, seed, checkpoint_dir, resume,
+                                        checkpoint_every_s, resume_hint, say, devices)
+    found = Found(say, clock["start"])
+    start = _start(problem, cfg, seed, say, found, clock)
+    problem, calibration, report, evaluate = _calibrated(problem, cfg, start, seed, say)
+    clock["calibrate"] = time.perf_counter()
+    stamp = _stamp_phase(problem, cfg, start, seed, say, devices, checkpointer, snap,
+                         checkpoint_dir, found, clock)
+    final = _final(problem, cfg, stamp, start, evaluate, seed, say, devices, found, clock)
+    returned = final.outcome.predicted.ok & np.isfinite(final.outcome.cost)
+    theta, repaired, outcome = _repair(problem, cfg, final.theta, returned, final.outcome,
+                                       evaluate, seed, say)
     found.add(outcome.verified.plan[outcome.good], theta[outcome.good], "repaired")
     clock["repair"] = time.perf_counter()
     robust = _robustness(problem, cfg, theta, returned & outcome.verified.ok,
@@ -641,17 +709,18 @@ def _solve(task, config, *, seed, progress, checkpoint_dir, resume, checkpoint_e
     return SolveResult(
         problem=problem, config={"seed": seed, "task": dict(problem.settings),
                                  "solve": _settings(cfg)},
-        theta=theta, svgd_theta=svgd_theta,
-        initial_theta=theta0_np, cost=outcome.cost, returned=returned, repaired=repaired,
+        theta=theta, svgd_theta=final.svgd_theta,
+        initial_theta=start.theta0_np, cost=outcome.cost, returned=returned, repaired=repaired,
         predicted=outcome.predicted, verified=outcome.verified, replay=outcome.replay,
         diagnostics=stamp.diagnostics, stamp=stamp,
         rows=group(outcome.cost, returned, outcome.predicted, outcome.verified,
-                             repaired, None if robust is None else robust["success"]),
+                   repaired, None if robust is None else robust["success"]),
         timings=_timings(clock), fidelity=report,
-        screen=None if screen is None else screen.as_dict(), source=source,
-        rescue=_rescue_report(problem, cfg, stamp, visited["initial"][1], outcome),
-        devices=devices, loss=loss, robustness=robust,
-        polish=_polish_report(polished, landing, early, outcome, source, given_back),
+        screen=None if start.screen is None else start.screen.as_dict(), source=final.source,
+        rescue=_rescue_report(problem, cfg, stamp, final.visited["initial"][1], outcome),
+        devices=devices, loss=final.loss, robustness=robust,
+        polish=_polish_report(final.polished, final.landing, start.early, outcome,
+                              final.source, final.given_back),
         found=found.as_dict(),
         symbol_disagreements=disagreements,
     )
