@@ -84,6 +84,84 @@ def _evaluate(problem, theta, tolerances, depth, replay: Replay | None = None):
     return np.sum(r**2, axis=1), r, ok, landed, np.asarray(decoded.plan, dtype=object)[:m]
 
 
+class _Best:
+    """Each particle's best success so far, in the task plan it started with (if any).
+
+    N.B. a particle that already holds a task plan keeps it: landing deepens, never swaps.
+    """
+
+    def __init__(self, theta: np.ndarray, p, ok, landed, plan):
+        self.target = np.where(ok, plan, None)
+        self.theta, self.p = theta.copy(), np.where(ok, p, np.inf)
+        self.ok, self.landed = ok.copy(), landed.copy()
+        self.plan = np.where(ok, plan, "").astype(object)
+
+    @staticmethod
+    def rank(p, ok, landed):
+        """Lower is better: landed (by Σ r²) < success (by Σ r²) < anything else (inf)."""
+        return np.where(landed, -1.0 / (1.0 + p), np.where(ok, p, np.inf))
+
+    def keep(self, rows, pts, p, ok, landed, plan) -> None:
+        """Each row's best success among its points pts (len(rows), s, d), in its task plan."""
+        mine = self.target[rows][:, None]
+        ok = ok & ((mine == None) | (plan == mine))  # noqa: E711 - elementwise on objects
+        landed = landed & ok
+        score = self.rank(p, ok, landed)
+        j = np.argmin(score, axis=1)
+        take = np.arange(len(rows))
+        better = score[take, j] < self.rank(self.p[rows], self.ok[rows], self.landed[rows])
+        idx = rows[better]
+        self.theta[idx], self.p[idx] = pts[take, j][better], p[take, j][better]
+        self.ok[idx], self.landed[idx] = True, landed[take, j][better]
+        self.plan[idx] = plan[take, j][better]
+
+
+def _stencil(centre: np.ndarray, rho: np.ndarray, axes: np.ndarray, width: np.ndarray,
+             box) -> np.ndarray:
+    """θ ± ρ w_j e_j per movable coordinate j: (m, 2k, d) points, clipped to the box."""
+    low, high, clip = box
+    m, d = centre.shape
+    k = len(axes)
+    step = np.zeros((m, 2 * k, d))
+    for i, j in enumerate(axes):
+        step[:, 2 * i, j] = rho * width[j]
+        step[:, 2 * i + 1, j] = -rho * width[j]
+    pts = centre[:, None] + step
+    return np.where(clip, np.clip(pts, low, high), pts)
+
+
+def _jacobian(pts: np.ndarray, sr: np.ndarray, axes: np.ndarray, width: np.ndarray):
+    """(m, M, k) central differences of the residuals, in box units (the offsets taken)."""
+    dz = (pts[:, 0::2, axes] - pts[:, 1::2, axes]).diagonal(axis1=1, axis2=2)  # (m, k)
+    dz = dz / width[axes]
+    jac = (sr[:, 0::2] - sr[:, 1::2]).transpose(0, 2, 1)  # (m, M, k)
+    return jac / np.where(dz > 0, dz, 1.0)[:, None, :]
+
+
+def _gauss_newton(jac: np.ndarray, r: np.ndarray, rho: np.ndarray):
+    """The damped Gauss–Newton step (m, k) cut to the trust radius, and its uncut size (m,)."""
+    k = jac.shape[2]
+    g = np.einsum("mrk,mr->mk", jac, r)
+    h = np.einsum("mrk,mrl->mkl", jac, jac)
+    damping = 1e-9 * (np.trace(h, axis1=1, axis2=2) / k + 1e-300)
+    finite = np.isfinite(h).all(axis=(1, 2)) & np.isfinite(g).all(axis=1)
+    h = np.where(finite[:, None, None], h, np.eye(k))
+    g = np.where(finite[:, None], g, 0.0)
+    delta = -np.linalg.solve(h + damping[:, None, None] * np.eye(k), g[..., None])[..., 0]
+    size = np.linalg.norm(delta, axis=1)
+    delta *= np.minimum(1.0, rho / np.maximum(size, 1e-300))[:, None]
+    return delta, size
+
+
+def _new_radius(rho: np.ndarray, ratio: np.ndarray, full: np.ndarray) -> np.ndarray:
+    """Trust radius after a step: doubled (a full step that did well), quartered, or kept.
+
+    N.B. at most a whole box width: a step past that leaves every box anyway.
+    """
+    return np.where(ratio > 0.75, np.where(full, np.minimum(2 * rho, 1.0), rho),
+                    np.where(ratio < 0.25, rho / 4, rho))
+
+
 def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
          radius: float = 0.01, min_radius: float = 1e-5,
          replay: Replay | None = None, until: str = "landed") -> Landing:
@@ -114,84 +192,40 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
     width = np.where(movable, high - low, 0.0)
     axes = np.flatnonzero(movable)
     p, r, ok, landed, plan = _evaluate(problem, theta, tolerances, depth, replay)
-    # N.B. a particle that already holds a task plan keeps it: landing deepens, never swaps.
-    target = np.where(ok, plan, None)
+    best = _Best(theta, p, ok, landed, plan)
     rollouts = 0 if replay is not None else n
     centre, rho = theta.copy(), np.full(n, float(radius))
-    best, best_p = theta.copy(), np.where(ok, p, np.inf)
-    best_ok, best_landed = ok.copy(), landed.copy()
-    best_plan = np.where(ok, plan, "").astype(object)
-    enough = best_landed if until == "landed" else best_ok
+    enough = best.landed if until == "landed" else best.ok
     done = enough | ~np.isfinite(p)
     its = np.zeros(n, int)
-
-    def rank(p_, ok_, landed_):
-        """Lower is better: landed (by Σ r²) < success (by Σ r²) < anything else (inf)."""
-        return np.where(landed_, -1.0 / (1.0 + p_), np.where(ok_, p_, np.inf))
-
-    def keep(rows, pts, p_, ok_, landed_, plan_):
-        """Each row's best success among its points pts (len(rows), s, d), in its task plan."""
-        mine = target[rows][:, None]
-        ok_ = ok_ & ((mine == None) | (plan_ == mine))  # noqa: E711 - elementwise on objects
-        landed_ = landed_ & ok_
-        score = rank(p_, ok_, landed_)
-        j = np.argmin(score, axis=1)
-        take = np.arange(len(rows))
-        better = score[take, j] < rank(best_p[rows], best_ok[rows], best_landed[rows])
-        idx = rows[better]
-        best[idx], best_p[idx] = pts[take, j][better], p_[take, j][better]
-        best_ok[idx], best_landed[idx] = True, landed_[take, j][better]
-        best_plan[idx] = plan_[take, j][better]
-
     for _ in range(iterations):
         rows = np.flatnonzero(~done)
         if not len(rows) or not len(axes):
             break
         its[rows] += 1
         k, m = len(axes), len(rows)
-        # Stencil: θ ± ρ w_j e_j per movable coordinate (2k points per particle).
-        step = np.zeros((m, 2 * k, d))
-        for i, j in enumerate(axes):
-            step[:, 2 * i, j] = rho[rows] * width[j]
-            step[:, 2 * i + 1, j] = -rho[rows] * width[j]
-        pts = centre[rows, None] + step
-        pts = np.where(clip, np.clip(pts, low, high), pts)
+        pts = _stencil(centre[rows], rho[rows], axes, width, (low, high, clip))
         flat = pts.reshape(-1, d)
         sp, sr, sok, sland, splan = _evaluate(problem, flat, tolerances, depth)
         rollouts += len(flat)
         sp, sok, sland, splan = (a.reshape(m, 2 * k) for a in (sp, sok, sland, splan))
         sr = sr.reshape(m, 2 * k, -1)
-        keep(rows, pts, sp, sok, sland, splan)
-        # Central differences in box units (the clipped offsets actually taken).
-        dz = (pts[:, 0::2, axes] - pts[:, 1::2, axes]).diagonal(axis1=1, axis2=2)  # (m, k)
-        dz = dz / width[axes]
-        jac = (sr[:, 0::2] - sr[:, 1::2]).transpose(0, 2, 1)  # (m, M, k)
-        jac = jac / np.where(dz > 0, dz, 1.0)[:, None, :]
-        g = np.einsum("mrk,mr->mk", jac, r[rows])
-        h = np.einsum("mrk,mrl->mkl", jac, jac)
-        damping = 1e-9 * (np.trace(h, axis1=1, axis2=2) / k + 1e-300)
-        finite = np.isfinite(h).all(axis=(1, 2)) & np.isfinite(g).all(axis=1)
-        h = np.where(finite[:, None, None], h, np.eye(k))
-        g = np.where(finite[:, None], g, 0.0)
-        delta = -np.linalg.solve(h + damping[:, None, None] * np.eye(k), g[..., None])[..., 0]
-        size = np.linalg.norm(delta, axis=1)
-        delta *= np.minimum(1.0, rho[rows] / np.maximum(size, 1e-300))[:, None]
+        best.keep(rows, pts, sp, sok, sland, splan)
+        jac = _jacobian(pts, sr, axes, width)
+        delta, size = _gauss_newton(jac, r[rows], rho[rows])
         trial = centre[rows].copy()
         trial[:, axes] += delta * width[axes]
         trial = np.where(clip, np.clip(trial, low, high), trial)
         tp, tr, tok, tland, tplan = _evaluate(problem, trial, tolerances, depth)
         rollouts += m
-        keep(rows, trial[:, None], tp[:, None], tok[:, None], tland[:, None], tplan[:, None])
+        best.keep(rows, trial[:, None], tp[:, None], tok[:, None], tland[:, None],
+                  tplan[:, None])
         model = r[rows] + np.einsum("mrk,mk->mr", jac, (trial - centre[rows])[:, axes]
                                     / width[axes])
         predicted = p[rows] - np.sum(model**2, axis=1)
         actual = p[rows] - tp
         ratio = np.where(predicted > 0, actual / np.where(predicted > 0, predicted, 1.0), -1.0)
-        full = size >= 0.9 * rho[rows]
-        # N.B. at most a whole box width: a step past that leaves every box anyway.
-        rho[rows] = np.where(ratio > 0.75, np.where(full, np.minimum(2 * rho[rows], 1.0),
-                                                    rho[rows]),
-                             np.where(ratio < 0.25, rho[rows] / 4, rho[rows]))
+        rho[rows] = _new_radius(rho[rows], ratio, size >= 0.9 * rho[rows])
         # The centre moves to the best of itself, its stencil and the trial.
         pool_p = np.concatenate([p[rows, None], sp, tp[:, None]], axis=1)
         pool_p = np.where(np.isfinite(pool_p), pool_p, np.inf)
@@ -201,6 +235,6 @@ def land(task, theta: np.ndarray, *, iterations: int = 20, depth: float = 0.25,
         take = np.arange(m)
         centre[rows], p[rows], r[rows] = pool[take, j], pool_p[take, j], pool_r[take, j]
         done[rows] = enough[rows] | (rho[rows] < min_radius)
-    out = np.where(best_ok[:, None], best, centre)
-    return Landing(out, best_ok, best_landed, np.where(best_ok, best_p, p), its, rollouts,
-                   time.perf_counter() - started, best_plan)
+    out = np.where(best.ok[:, None], best.theta, centre)
+    return Landing(out, best.ok, best.landed, np.where(best.ok, best.p, p), its, rollouts,
+                   time.perf_counter() - started, best.plan)
