@@ -382,6 +382,17 @@ class _Loop:
         if carry.backtrack is not None and not done:
             # a new phase: a new objective, a new optimizer
             carry = carry._replace(backtrack=guards.backtrack_init(self.n))
+        return self._iterations(phase, step, state, carry, done, max_iters)
+
+    def _iterations(self, phase: int, step, state, carry: _Carry, done: list, max_iters: int):
+        """(state, carry, converged): the compiled `step` from iteration len(done) + 1 on.
+
+        Ends at the convergence test, the cap `max_iters` or the phase's
+        deadline. done: this phase's records so far (a snapshot's; else empty).
+        """
+        name = "svgd" if phase == PHASE_SVGD else "sgd"
+        means = [float(r.logdensity_mean) for r in done]
+        moves = [float(r.displacement) for r in done]
         # Near-zero score norm, fixed at the phase's first iteration.
         threshold = float(done[0].near_zero_threshold) if done else None
         for t in range(len(done) + 1, max_iters + 1):
