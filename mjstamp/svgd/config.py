@@ -106,9 +106,8 @@ class StampConfig:
         learning rate whatever the gradient, which throws particles out of
         valleys narrower than that step. In SGD
         the optimizer runs free and each particle ends at the best point it
-        visited (taking steps back there shrank them until the convergence
-        test ended SGD early: pushing K = 2 ended with 53% of particles
-        verified, against 70%). False: every update as the optimizer gives it
+        visited (steps taken back there would shrink until the convergence
+        test ended SGD early). False: every update as the optimizer gives it
         and the last iterate returned (Algorithm 1 as written).
     """
 
