@@ -239,6 +239,7 @@ def _phase_steps(
                               evaluate=svgd_step.evaluate if shared else None)
     return (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer)
 
+
 def _svgd_iters(carry: _Carry) -> int:
     """The SVGD iterations among the carry's records."""
     return sum(int(r.phase) == PHASE_SVGD for r in carry.rows)
