@@ -6,9 +6,9 @@ solver (`verify.simulate_c`), ranked by the task's own cost on those replays
 (`verify.cost_c`), and decoded as solved plans are (`verify.decode`); every
 successful sample's task plan goes to the `Tracker`, so a restart that
 converges on a mode already found still counts whatever else it met on the
-way. One MuJoCo C step costs 2-4 us on a 2-core CPU against 20-600 us for
-one MJX value-and-gradient per particle-step (issue 29's measures), so the
-sampler may spend about a hundred samples for each gradient STAMP takes.
+way. One MuJoCo C step costs a small fraction of one MJX value-and-gradient
+per particle-step, so the sampler may spend many samples for each gradient
+STAMP takes (benchmarks/results/README.md has the measures).
 
 Settings and why (`run_cmaes`):
 
@@ -18,8 +18,8 @@ Settings and why (`run_cmaes`):
   cost is a continuous function on all of R^d (no penalty to scale against
   the task's costs);
 - population = 32 at the first start (more than CMA-ES's default
-  4 + ⌊3 ln d⌋, 13-14 for d = 8-35: one C replay batch of 32 keeps both
-  cores busy and costs the same per sample as a larger one), multiplied by
+  4 + ⌊3 ln d⌋, 13-14 for d = 8-35: one C replay batch of 32 keeps a small
+  machine's cores busy), multiplied by
   `population_growth` = 2 at each restart up to `max_population` = 256
   (IPOP-CMA-ES, Auger and Hansen 2005: larger populations see the global
   structure of multimodal costs);
@@ -172,6 +172,31 @@ def run_cmaes(task, *, target: int | None = None, cap_s: float = 600.0, seed: in
       a `BaselineResult` ("cmaes"; `runs` counts generations).
     """
     del config
+    _check_settings(population, population_growth, max_population, stall_generations, seed,
+                    sigma0, tol_x)
+    problem = as_problem(task)
+    Tracker(problem, target, cap_s)  # N.B. checks target and cap_s before any work
+    theta_of, d = _unit_box(problem)
+    rng = np.random.default_rng(seed)
+    _warm_up(problem, theta_of, d, seed,
+             _population_sizes(population, population_growth, max_population))
+    tracker = Tracker(problem, target, cap_s)
+    lam, generations, restarts = population, 0, 0
+    while not tracker.done:
+        es = CMAES(rng.uniform(size=d), sigma0, lam, rng)
+        generations += _run_start(problem, tracker, es, theta_of, d, tol_x=tol_x,
+                                  stall_generations=stall_generations)
+        restarts += 1
+        lam = min(lam * population_growth, max_population)
+    return tracker.result("cmaes", seed, generations, {
+        "population": population, "population_growth": population_growth,
+        "max_population": max_population, "sigma0": sigma0, "tol_x": tol_x,
+        "stall_generations": stall_generations, "starts": restarts, "warm_up": "untimed"})
+
+
+def _check_settings(population, population_growth, max_population, stall_generations, seed,
+                    sigma0, tol_x) -> None:
+    """Raises MjstampError on a setting of `run_cmaes` out of its range (named in the line)."""
     _check("population", population, 4, integer=True)
     _check("population_growth", population_growth, 1, integer=True)
     _check("max_population", max_population, population, integer=True)
@@ -180,56 +205,69 @@ def run_cmaes(task, *, target: int | None = None, cap_s: float = 600.0, seed: in
     for name, value in (("sigma0", sigma0), ("tol_x", tol_x)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
             raise MjstampError(f"{name}={value!r} must be a number in (0, 1) (box widths)")
-    problem = as_problem(task)
-    Tracker(problem, target, cap_s)  # N.B. checks target and cap_s before any work
+
+
+def _unit_box(problem):
+    """(theta_of, d): θ of unit-cube coordinates (n, d) -> (n, d), mirrored into θ's box."""
     low, high = problem.low.astype(np.float64), problem.high.astype(np.float64)
     width = high - low
-    d = len(low)
-    rng = np.random.default_rng(seed)
 
     def theta_of(x):
         return low + width * mirror(x)
 
-    # N.B. the replay's poses compile once per batch size: warm every population
-    # size of the schedule, and the one-plan replay `Tracker.record` costs.
+    return theta_of, len(low)
+
+
+def _population_sizes(population: int, growth: int, largest: int) -> list[int]:
+    """Every λ the restarts will use: `population`, times `growth` each restart, up to `largest`."""
     sizes = [population]
-    while sizes[-1] < max_population and population_growth > 1:
-        sizes.append(min(sizes[-1] * population_growth, max_population))
+    while sizes[-1] < largest and growth > 1:
+        sizes.append(min(sizes[-1] * growth, largest))
+    return sizes
+
+
+def _warm_up(problem, theta_of, d: int, seed: int, sizes: list[int]) -> None:
+    """Replays, decodes and costs one population of each size, untimed and discarded.
+
+    N.B. the replay's poses compile once per batch size: warm every population
+    size of the schedule, and the one-plan replay `Tracker.record` costs.
+    """
     for size in sizes:
         warm = theta_of(np.random.default_rng([seed, 1]).uniform(size=(size, d)))
         replay = verify.simulate_c(problem, warm)
         verify.decode(problem, replay, warm)
         verify.cost_c(problem, replay, warm)
     verify.cost_c(problem, replay.rows([0]), warm[:1])
-    tracker = Tracker(problem, target, cap_s)
-    lam, generations, restarts = population, 0, 0
+
+
+def _run_start(problem, tracker: Tracker, es: CMAES, theta_of, d: int, *, tol_x: float,
+               stall_generations: int) -> int:
+    """Generations of one start, run until its restart rule fires or `tracker` is done.
+
+    Every generation's samples are replayed in C, decoded, recorded in
+    `tracker` and costed; the costs are told to `es`.
+    """
+    lam = es.lam
+    flat = 10 + math.ceil(30 * d / lam)
+    limit = 100 + math.ceil(50 * (d + 3) ** 2 / math.sqrt(lam))
+    best: list[float] = []
+    met_success, since_new, generations = False, 0, 0
     while not tracker.done:
-        es = CMAES(rng.uniform(size=d), sigma0, lam, rng)
-        flat = 10 + math.ceil(30 * d / lam)
-        limit = 100 + math.ceil(50 * (d + 3) ** 2 / math.sqrt(lam))
-        best: list[float] = []
-        met_success, since_new = False, 0
-        while not tracker.done:
-            theta = theta_of(es.ask())
-            replay = verify.simulate_c(problem, theta)
-            decoded = verify.decode(problem, replay, theta)
-            cost = verify.cost_c(problem, replay, theta)
-            tracker.rollouts += len(theta)
-            new = tracker.record(decoded, theta, replay)
-            generations += 1
-            es.tell(cost)
-            met_success |= bool(decoded.ok.any())
-            since_new = 0 if new else since_new + 1
-            best.append(float(cost.min()))
-            recent = best[-flat:]
-            if (es.spread < tol_x or es.condition > 1e14 or es.generation >= limit
-                    or (met_success and since_new >= stall_generations)
-                    or (len(best) >= flat and np.isfinite(recent).all()
-                        and max(recent) - min(recent) <= 1e-12 * (1 + abs(min(recent))))):
-                break
-        restarts += 1
-        lam = min(lam * population_growth, max_population)
-    return tracker.result("cmaes", seed, generations, {
-        "population": population, "population_growth": population_growth,
-        "max_population": max_population, "sigma0": sigma0, "tol_x": tol_x,
-        "stall_generations": stall_generations, "starts": restarts, "warm_up": "untimed"})
+        theta = theta_of(es.ask())
+        replay = verify.simulate_c(problem, theta)
+        decoded = verify.decode(problem, replay, theta)
+        cost = verify.cost_c(problem, replay, theta)
+        tracker.rollouts += len(theta)
+        new = tracker.record(decoded, theta, replay)
+        generations += 1
+        es.tell(cost)
+        met_success |= bool(decoded.ok.any())
+        since_new = 0 if new else since_new + 1
+        best.append(float(cost.min()))
+        recent = best[-flat:]
+        if (es.spread < tol_x or es.condition > 1e14 or es.generation >= limit
+                or (met_success and since_new >= stall_generations)
+                or (len(best) >= flat and np.isfinite(recent).all()
+                    and max(recent) - min(recent) <= 1e-12 * (1 + abs(min(recent))))):
+            break
+    return generations

@@ -4,8 +4,8 @@ Plans are found on the gradient model (MJX with `GradOptions`: a fixed number
 of solver iterations, no warm start) and verified in MuJoCo C with the scene's
 own solver settings. The two agree only if the gradient model's solver
 converges: one Newton iteration is exact for soft frictionless contacts (the
-shipped billiards table, 1e-10 m) but on a frictional scene with MuJoCo's
-default contacts it drifts by centimetres within a second.
+shipped billiards table) but drifts on a frictional scene with MuJoCo's
+default contacts.
 
 Divergence of one particle = the largest difference of any body's centre of
 mass or geom's centre (`tracked_points`, metres) over the horizon between the
@@ -19,14 +19,13 @@ pocket or goal region.
 `calibrate` picks the cheapest faithful setting among, by default, one
 unrolled Newton iteration (exact on soft frictionless contacts, the cheapest)
 and the implicit gradient (MJX's own solver run to the MJCF's tolerance, one
-differentiated Newton step: exact wherever the solver converges, at 0.8-1.5x
-the cost of one iteration; see `gradsafe.gradient_mode`). Unrolled settings
-with more iterations can be passed as candidates (benchmarks do). N.B. it
-steps the gradient model's MuJoCo C twin (`m` with the candidate options), not
-MJX itself: C is some 20x faster and compiles nothing, and MJX agrees with its
-C twin to about 1e-11 m where both collide the same shapes and converge
-(tests/test_rollout.py); `solve` then measures MJX itself on the same
-particles before STAMP starts, and at the final particles.
+differentiated Newton step: exact wherever the solver converges; see
+`gradsafe.gradient_mode`). Unrolled settings with more iterations can be
+passed as candidates (benchmarks do). N.B. it steps the gradient model's
+MuJoCo C twin (`m` with the candidate options), not MJX itself: C is faster
+and compiles nothing, and MJX agrees with its C twin where both collide the
+same shapes and converge (tests/test_rollout.py); `solve` then measures MJX
+itself on the same particles before STAMP starts, and at the final particles.
 """
 
 from __future__ import annotations
@@ -235,7 +234,6 @@ def _key(scene, inputs, tolerance, candidates) -> str:
     return h.hexdigest()[:24]
 
 
-# N.B. over 80 lines: 40 of them the docstring of its arguments.
 def calibrate(
     scene,
     qpos0: np.ndarray,
@@ -282,6 +280,32 @@ def calibrate(
       A `Calibration`.
     """
     say = Progress.of(progress or False, "fidelity")  # N.B. None: silent, as before
+    tolerance, own, budget = _limits(scene, tolerance, max_iterations)
+    qpos0 = np.asarray(qpos0, np.float64)
+    qvel0 = np.asarray(qvel0, np.float64)
+    ctrl = controls(ctrl, horizon, len(qpos0), scene.m.nu, who="calibrate")
+    todo = _settings(scene, candidates, own, budget)
+    path = CACHE / f"{scene.name}-{_key(scene, (qpos0, qvel0, ctrl), tolerance, todo)}.json"
+    if cache and (hit := _cached(path)) is not None:
+        return hit
+    started = time.perf_counter()
+    if reference is None:
+        reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
+    tried = _measure(scene, todo, (qpos0, qvel0, ctrl), tracked_points(scene.m, reference),
+                     tolerance, say)
+    result = _verdict(scene, tried, tolerance, (len(qpos0), int(ctrl.shape[1])),
+                      time.perf_counter() - started)
+    if cache:
+        _write(path, result)
+    return result
+
+
+def _limits(scene, tolerance: float | None, max_iterations: int | None) -> tuple[float, int, int]:
+    """(tolerance in metres, the MJCF's solver iterations, the budget of iterations), checked.
+
+    Raises:
+      MjstampError: the tolerance is not > 0 or the budget is under 1.
+    """
     tolerance = default_tolerance(scene) if tolerance is None else float(tolerance)
     if not tolerance > 0:
         raise MjstampError(f"fidelity tolerance={tolerance} must be > 0 (metres)")
@@ -289,20 +313,31 @@ def calibrate(
     budget = own if max_iterations is None else int(max_iterations)
     if budget < 1:
         raise MjstampError(f"max_solver_iterations={max_iterations} must be >= 1")
-    qpos0 = np.asarray(qpos0, np.float64)
-    qvel0 = np.asarray(qvel0, np.float64)
-    ctrl = controls(ctrl, horizon, len(qpos0), scene.m.nu, who="calibrate")
-    todo = _settings(scene, candidates, own, budget)
-    path = CACHE / f"{scene.name}-{_key(scene, (qpos0, qvel0, ctrl), tolerance, todo)}.json"
-    if cache and path.is_file():
-        try:
-            return Calibration.from_dict(json.loads(path.read_text()))
-        except (ValueError, KeyError, TypeError):
-            pass  # a corrupt entry is measured again and rewritten
-    started = time.perf_counter()
-    if reference is None:
-        reference = replay(scene, qpos0, qvel0, ctrl, fields=("qpos",), solver="scene")["qpos"]
-    x_ref = tracked_points(scene.m, reference)
+    return tolerance, own, budget
+
+
+def _cached(path: Path) -> Calibration | None:
+    """The calibration stored at `path`, or None where there is none or it is corrupt."""
+    if not path.is_file():
+        return None
+    try:
+        return Calibration.from_dict(json.loads(path.read_text()))
+    except (ValueError, KeyError, TypeError):
+        return None  # a corrupt entry is measured again and rewritten
+
+
+def _measure(scene, todo, inputs, x_ref: np.ndarray, tolerance: float, say) -> list[Measurement]:
+    """One `Measurement` per setting of `todo`, in order, up to the first faithful one.
+
+    Args:
+      scene: the `Scene`.
+      todo: (gradient, iterations, ls_iterations, warm start) settings, `_settings`.
+      inputs: (qpos0 (n, nq), qvel0 (n, nv), ctrl (n, T, nu)).
+      x_ref: (n, T, p, 3) tracked points of the reference replay (`tracked_points`).
+      tolerance: metres.
+      say: where status lines go.
+    """
+    qpos0, qvel0, ctrl = inputs
     tried: list[Measurement] = []
     for gradient, iterations, ls, warm in todo:
         candidate = scene.with_grad_options(
@@ -318,17 +353,23 @@ def calibrate(
             f"{tried[-1].p95_m:.2g} m (tolerance {tolerance:.2g} m)")
         if tried[-1].faithful(tolerance):
             break
+    return tried
+
+
+def _verdict(scene, tried: list[Measurement], tolerance: float, size: tuple[int, int],
+             seconds: float) -> Calibration:
+    """The `Calibration` of the settings tried: the first faithful one, else the closest.
+
+    size: (particles n, horizon T) replayed; seconds: the calibration's wall time.
+    """
     faithful = [t for t in tried if t.faithful(tolerance)]
     after = faithful[0] if faithful else min(tried, key=lambda t: t.p95_m)
-    result = Calibration(
-        scene=scene.name, tolerance_m=tolerance, particles=len(qpos0),
-        horizon=int(ctrl.shape[1]), before=tried[0], after=after,
+    return Calibration(
+        scene=scene.name, tolerance_m=tolerance, particles=size[0],
+        horizon=size[1], before=tried[0], after=after,
         faithful=bool(faithful), tried=tuple(tried),
-        seconds=time.perf_counter() - started,
+        seconds=seconds,
     )
-    if cache:
-        _write(path, result)
-    return result
 
 
 def _settings(scene, candidates, own: int, budget: int) -> list[tuple[str, int, int, bool]]:

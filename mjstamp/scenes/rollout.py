@@ -75,7 +75,6 @@ def _chunk_length(horizon: int, checkpoint) -> int | None:
     return chunk
 
 
-# N.B. over 80 lines: 27 of them the docstring, 9 the signature.
 def build_rollout(
     scene,
     horizon: int,
@@ -111,35 +110,63 @@ def build_rollout(
     Returns:
       The rollout function.
     """
+    horizon, fields, chunk, model_fields = _checked_settings(
+        scene, horizon, fields, checkpoint, model_fields)
+    single = _single_rollout(scene, horizon, fields, chunk, _initial_data(scene))
+    batched = jax.jit(jax.vmap(single))
+    mx, dtype = scene.mx, scene.dtype
+
+    def rollout(qpos0, qvel0, ctrl=None, model=None) -> Trajectory:
+        qpos0, qvel0, ctrl = _checked_inputs(scene, horizon, qpos0, qvel0, ctrl)
+        return batched(qpos0, qvel0, ctrl, _checked_model(model_fields, model, qpos0.shape[0],
+                                                          mx, dtype))
+
+    rollout.horizon = horizon
+    rollout.fields = fields
+    rollout.chunk = chunk
+    rollout.model_fields = model_fields
+    return rollout
+
+
+def _checked_settings(scene, horizon, fields, checkpoint, model_fields):
+    """(horizon T, fields, chunk length or None, model_fields) of `build_rollout`, checked.
+
+    Raises:
+      MjstampError: T < 1, an unknown or no field, a checkpoint that does not
+        divide T, or a model field `mjx.Model` lacks.
+    """
     horizon = int(horizon)
     if horizon < 1:
         raise MjstampError(f"horizon={horizon} must be >= 1")
     fields = _check_fields(fields)
     chunk = _chunk_length(horizon, checkpoint)
     model_fields = tuple(model_fields)
-    m, mx, dtype = scene.m, scene.mx, scene.dtype
     for f in model_fields:
-        if not hasattr(mx, f):
+        if not hasattr(scene.mx, f):
             raise MjstampError(f"model field {f!r} is not a field of mjx.Model")
-    nu = m.nu
-    need_kinematics = any(f in POSE_FIELDS for f in fields)
-    # N.B. built eagerly even when first asked for inside a trace (a task's log
-    # posterior under jit): a traced d0 memoised in the scene would leak.
-    with jax.ensure_compile_time_eval():
-        d0 = cast_floats(mjx.make_data(mx, device=local_device()), dtype)
+    return horizon, fields, chunk, model_fields
 
-    mode = scene.grad_options.gradient
+
+def _initial_data(scene):
+    """The `mjx.Data` every rollout starts from, in the scene's dtype, on the local device.
+
+    N.B. built eagerly even when first asked for inside a trace (a task's log
+    posterior under jit): a traced d0 memoised in the scene would leak.
+    """
+    with jax.ensure_compile_time_eval():
+        return cast_floats(mjx.make_data(scene.mx, device=local_device()), scene.dtype)
+
+
+def _single_rollout(scene, horizon: int, fields: tuple[str, ...], chunk: int | None, d0):
+    """single(qpos0 (nq,), qvel0 (nv,), ctrl (T, nu), model) -> {field: (T, ...)}: one row.
+
+    The steps run under `jax.lax.scan`, in rematerialised chunks of `chunk`
+    steps when it is not None; `model` replaces fields of the scene's `mx`.
+    """
+    mx, nu, mode = scene.mx, scene.m.nu, scene.grad_options.gradient
 
     def single(qpos0, qvel0, ctrl, model):
-        mxk = mx.replace(**model) if model else mx
-
-        def step(dx, u):
-            # N.B. read while tracing: how MJX's solver is differentiated (gradsafe).
-            with gradsafe.gradient_mode(mode):
-                dx = mjx.step(mxk, dx.replace(ctrl=u))
-            src = mjx.kinematics(mxk, dx) if need_kinematics else dx
-            return dx, {f: getattr(src, f) for f in fields}
-
+        step = _step_fn(mx.replace(**model) if model else mx, mode, fields)
         dx = d0.replace(qpos=qpos0, qvel=qvel0)
         if chunk is None:
             return jax.lax.scan(step, dx, ctrl)[1]
@@ -152,18 +179,21 @@ def build_rollout(
         out = jax.lax.scan(run_chunk, dx, ctrl)[1]
         return jax.tree_util.tree_map(lambda x: x.reshape(horizon, *x.shape[2:]), out)
 
-    batched = jax.jit(jax.vmap(single))
+    return single
 
-    def rollout(qpos0, qvel0, ctrl=None, model=None) -> Trajectory:
-        qpos0, qvel0, ctrl = _checked_inputs(scene, horizon, qpos0, qvel0, ctrl)
-        return batched(qpos0, qvel0, ctrl, _checked_model(model_fields, model, qpos0.shape[0],
-                                                          mx, dtype))
 
-    rollout.horizon = horizon
-    rollout.fields = fields
-    rollout.chunk = chunk
-    rollout.model_fields = model_fields
-    return rollout
+def _step_fn(mxk, mode: str, fields: tuple[str, ...]):
+    """step(dx, u) -> (dx after one MJX step of `mxk` with controls u, {field: its value})."""
+    need_kinematics = any(f in POSE_FIELDS for f in fields)
+
+    def step(dx, u):
+        # N.B. read while tracing: how MJX's solver is differentiated (gradsafe).
+        with gradsafe.gradient_mode(mode):
+            dx = mjx.step(mxk, dx.replace(ctrl=u))
+        src = mjx.kinematics(mxk, dx) if need_kinematics else dx
+        return dx, {f: getattr(src, f) for f in fields}
+
+    return step
 
 
 def _checked_model(model_fields: tuple[str, ...], model, n: int, mx, dtype) -> dict:

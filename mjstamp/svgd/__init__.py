@@ -37,6 +37,9 @@ References:
   STAMP §III-A, §IV-A/B, Algorithm 1, App. B-C, App. C-B.
 """
 
+from mjstamp.svgd.config import StampConfig
+from mjstamp.svgd.diagnostics import StampDiagnostics, StampResult, has_converged
+from mjstamp.svgd.guards import PHASE_SGD, PHASE_SVGD
 from mjstamp.svgd.kernels import (
     RBF,
     FeatureKernel,
@@ -58,16 +61,8 @@ from mjstamp.svgd.polish import (
     build_polish_step,
     run_polish,
 )
-from mjstamp.svgd.stamp import (
-    PHASE_SGD,
-    PHASE_SVGD,
-    LoopSnapshot,
-    StampConfig,
-    StampDiagnostics,
-    StampResult,
-    has_converged,
-    run_stamp,
-)
+from mjstamp.svgd.resume import LoopSnapshot
+from mjstamp.svgd.stamp import run_stamp
 from mjstamp.svgd.steps import (
     NEAR_ZERO_ATOL,
     NEAR_ZERO_RTOL,

@@ -6,7 +6,7 @@ Each guard is a `NamedTuple` state and pure functions in the optax style,
 reads them there (a jnp call per guard would be one more dispatch per
 iteration). No function here writes into an array it is given; the loop
 applies the decisions to the particles and the optimizer state once per
-iteration (`stamp.py`).
+iteration (`edits.py`).
 
 References:
   STAMP Algorithm 1 (the steps these guard); `StampConfig.backtrack`,

@@ -5,18 +5,23 @@ from a Python loop, so a progress bar and the convergence test run between
 steps. The switch from SVGD to SGD (Algorithm 1 line 7), and the end of SGD,
 use the test of `has_converged`, with an iteration cap per phase as fallback.
 
+`run_stamp` reads as its steps: `_setup` checks the arguments and draws the
+particles, `_phase_steps` builds each phase's step, `_Loop` runs the phases
+(what changes between iterations is a `_Carry`, `mjstamp.svgd.resume`) and
+`_result` assembles the `StampResult`. The settings live in
+`mjstamp.svgd.config`, the records in `mjstamp.svgd.diagnostics`, the
+snapshots in `mjstamp.svgd.resume`; their public names are importable from
+here as before.
+
 References:
   STAMP Algorithm 1; §IV-A (inference by SVGD), §IV-B (refinement by SGD).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import numbers
 import time
-from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -28,9 +33,26 @@ from mjstamp.errors import MjstampError
 from mjstamp.progress import QUIET, Progress, ProgressLike
 from mjstamp.svgd import guards
 from mjstamp.svgd._checks import check_particles
-from mjstamp.svgd._jacobian import JacobianMode, check_mode
+from mjstamp.svgd._host import fetch
+from mjstamp.svgd.config import StampConfig
+from mjstamp.svgd.diagnostics import (
+    StampDiagnostics,
+    StampResult,
+    _fetch,
+    _stack_records,
+    has_converged,
+)
+from mjstamp.svgd.edits import _best, _edited
 from mjstamp.svgd.guards import PHASE_SGD, PHASE_SVGD
 from mjstamp.svgd.kernels import Kernel
+from mjstamp.svgd.resume import (
+    LoopSnapshot,
+    _Carry,
+    _resumed,
+    check_snapshot,
+    restore,
+    snapshot,
+)
 from mjstamp.svgd.steps import (
     LogDensityFn,
     StepInfo,
@@ -51,283 +73,10 @@ __all__ = [
     "StampConfig",
     "StampDiagnostics",
     "StampResult",
+    "fetch",
     "has_converged",
     "run_stamp",
 ]
-
-
-Schedule = Callable[[jax.Array], jax.Array]
-
-
-def _number(value, name: str, *, zero: bool = False, schedule: bool = False,
-            none: bool = False) -> None:
-    """A finite number > 0 (>= 0 with `zero`), or else an optax schedule or None if allowed."""
-    if (schedule and callable(value)) or (none and value is None):
-        return
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, numbers.Real)
-        or not math.isfinite(value)
-        or not (value >= 0 if zero else value > 0)
-    ):
-        what = f"a float {'>=' if zero else '>'} 0"
-        what += " or an optax schedule" * schedule + " or None" * none
-        raise MjstampError(f"{name} must be {what}; got {value!r}")
-
-
-def _count(value, name: str, minimum: int) -> None:
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, numbers.Integral)
-        or value < minimum
-    ):
-        raise MjstampError(f"{name} must be an integer >= {minimum}; got {value!r}")
-
-
-@dataclasses.dataclass(frozen=True)
-class StampConfig:
-    """Settings of the STAMP loop; every field is validated on construction.
-
-    The one definition of these settings: `run_stamp` reads them, and
-    `mjstamp.SolveConfig.stamp` holds them for a solve (with the solve's own
-    defaults, see there).
-
-    Attributes:
-      svgd_learning_rate: step size ε of the SVGD phase, in units of θ (float
-        > 0 or an optax schedule), used by the default optimizer, Adam; None:
-        the caller scales the step per coordinate (`svgd_step`) and passes its
-        own optimizer (`mjstamp.solve` does, by each coordinate's box width).
-      sgd_learning_rate: step size ε of the SGD phase, likewise (`sgd_step`).
-      svgd_step: with `svgd_learning_rate` None, the SVGD step as a fraction
-        of each coordinate's scale, which the caller's optimizer applies
-        (`run_stamp` itself does not read it): 0.01, so 50 iterations can
-        cross half a box.
-      sgd_step: likewise for SGD: 0.003, finer, to settle into narrow modes.
-      svgd_max_iters: cap on SVGD iterations (>= 0; Algorithm 1 line 3-7); the
-        fallback if the convergence test never fires.
-      sgd_max_iters: cap on SGD iterations (>= 0, line 8-10; 0 skips refinement).
-      min_iters: iterations each phase runs before the test may fire.
-      window: W, the number of iterations the test looks back over (>= 1;
-        `has_converged`).
-      rtol: bound on the relative change of the mean log posterior over W
-        iterations, |L̄_t − L̄_{t−W}| / max(|L̄_{t−W}|, 1).
-      motion_tol: bound on the mean particle displacement per iteration,
-        averaged over the last W iterations, in units of θ; None: the caller
-        resolves it before `run_stamp` (`mjstamp.solve`: 1e-4 of the mean box
-        width).
-      seed: seeds the PRNG keys handed to the steps and to a callable
-        `initial_particles`; the same seed gives the same run (a solve sets
-        it from its own seed).
-      jacobian: 'auto', 'fwd' or 'rev': how the SVGD step differentiates a log
-        density that also returns kernel features, and how the SGD step
-        differentiates its own (see `build_sgd_step`).
-      rescue_window: 0 (off) or R >= 1: in the SVGD phase, a particle that has
-        stalled for R consecutive iterations is re-drawn by `run_stamp`'s
-        `redraw` (and its optimizer moments zeroed). Stalled: its score norm is
-        at most the phase's near-zero threshold (`near_zero_threshold`: it
-        feels no gradient) and its log density is at most the population's
-        median (it is not resting in a good mode), or either is not finite.
-      nonfinite_redraw: 0 (never) or M >= 1: a particle whose log density,
-        score or features are not finite is frozen for the iteration (both
-        phases) and left out of the kernel of the others; after M consecutive
-        such iterations it is re-drawn by `redraw` when one is given (and its
-        optimizer moments zeroed), else it stays frozen.
-      backtrack: True: in SVGD, a step that leaves a particle's log density
-        more than max(1, d/2) nats below its peak in the phase is taken back
-        (in discrete SVGD the target at the decoded plan, log p(Γ(θ)), is the
-        one guarded): at its next iteration the particle returns to its last
-        accepted point, its step scale halves (down to 2^-10) and its
-        optimizer moments are zeroed; an accepted step multiplies the scale by
-        1.25, up to 1, and scales the particle's next optimizer update.
-        Adam's per-coordinate normalisation makes its first step the full
-        learning rate whatever the gradient, which throws particles out of
-        valleys narrower than that step. In SGD
-        the optimizer runs free and each particle ends at the best point it
-        visited (taking steps back there shrank them until the convergence
-        test ended SGD early: pushing K = 2 ended with 53% of particles
-        verified, against 70%). False: every update as the optimizer gives it
-        and the last iterate returned (Algorithm 1 as written).
-    """
-
-    svgd_learning_rate: float | Schedule | None = 1e-2
-    sgd_learning_rate: float | Schedule | None = 1e-2
-    svgd_step: float = 0.01
-    sgd_step: float = 0.003
-    svgd_max_iters: int = 1000
-    sgd_max_iters: int = 1000
-    min_iters: int = 50
-    window: int = 25
-    rtol: float = 1e-3
-    motion_tol: float | None = 1e-3
-    seed: int = 0
-    jacobian: JacobianMode = "auto"
-    rescue_window: int = 0
-    nonfinite_redraw: int = 3
-    backtrack: bool = True
-
-    def __post_init__(self):
-        """Validates every field (MjstampError naming the field and its range)."""
-        for name in ("svgd_learning_rate", "sgd_learning_rate"):
-            _number(getattr(self, name), name, schedule=True, none=True)
-        for name in ("svgd_step", "sgd_step"):
-            _number(getattr(self, name), name)
-        _count(self.svgd_max_iters, "svgd_max_iters", 0)
-        _count(self.sgd_max_iters, "sgd_max_iters", 0)
-        _count(self.min_iters, "min_iters", 0)
-        _count(self.window, "window", 1)
-        _number(self.rtol, "rtol", zero=True)
-        _number(self.motion_tol, "motion_tol", zero=True, none=True)
-        _count(self.seed, "seed", 0)
-        _count(self.rescue_window, "rescue_window", 0)
-        _count(self.nonfinite_redraw, "nonfinite_redraw", 0)
-        if not isinstance(self.backtrack, bool):
-            raise MjstampError(f"backtrack must be True or False; got {self.backtrack!r}")
-        try:
-            check_mode(self.jacobian, "jacobian")
-        except ValueError as e:
-            raise MjstampError(str(e)) from None
-
-
-class StampDiagnostics(NamedTuple):
-    """Per-iteration diagnostics of a run, T = SVGD + SGD iterations (numpy).
-
-    Attributes:
-      logdensity_mean: (T,) mean log ρ over the particles with a finite value.
-      logdensity_max: (T,) max log ρ.
-      bandwidth: (T, g) kernel bandwidths (NaN in the SGD phase).
-      phase: (T,) PHASE_SVGD (0) or PHASE_SGD (1).
-      learning_rate: (T,) step size ε when the optimizer exposes it (the
-        default ones do), NaN otherwise.
-      displacement: (T,) mean ‖Δθ_i‖ of the iteration: the step actually taken.
-      nonfinite_particles: (T,) particles with a NaN/inf log ρ, score or
-        features: frozen that iteration and counted for no other particle.
-      step_seconds: (T,) wall time of each iteration; the first of each phase
-        includes compiling its step (or loading it from the caches).
-      driving_norm_mean: (T,) mean over particles of ‖D_i‖, the driving term
-        D_i = Σ_j a_j k(θ_j, θ_i) ∇log ρ(θ_j) of the Stein direction (a_j = 1/n,
-        or the normalised importance weights of discrete SVGD); NaN in SGD.
-      driving_norm_median: (T,) median of ‖D_i‖; NaN in SGD.
-      repulsion_norm_mean: (T,) mean of ‖R_i‖, the repulsive term
-        R_i = Σ_j a_j ∇_{θ_j} k(θ_j, θ_i); NaN in SGD.
-      repulsion_norm_median: (T,) median of ‖R_i‖; NaN in SGD.
-      score_norm_median: (T,) median of ‖∇log ρ(θ_i)‖ over finite particles
-        (both phases: in SGD the score is the direction).
-      direction_norm_mean: (T,) mean ‖φ_i‖ of the direction handed to the
-        optimizer (D + R in SVGD, the score in SGD); displacement /
-        (learning_rate · direction_norm_mean) is the optimizer's gain (1 for
-        plain SGD; Adam's per-coordinate normalisation makes it large where
-        gradients are small).
-      displacement_per_coordinate: (T, d) mean over particles of |Δθ_ik|.
-      near_zero_share: (T,) share of the particles whose score norm is at most
-        near_zero_threshold, i.e. that feel almost no gradient.
-      near_zero_threshold: (T,) τ = max(1e-3 · m, 1e-12), m the median of the
-        nonzero score norms at the first iteration of the phase
-        (`mjstamp.svgd.near_zero_threshold`); constant within a phase.
-      self_weight_median: (T,) median over particles of a_i k_ii / Σ_j a_j k_ji,
-        the share of a particle's own score in its driving term: near 1/n the
-        kernel averages every particle's score, so a particle in a narrow valley
-        follows the crowd rather than its valley; NaN in SGD.
-      rescued: (T,) particles re-drawn after the iteration (`rescue_window`).
-      nonfinite_redrawn: (T,) particles re-drawn after the iteration for
-        being non-finite `nonfinite_redraw` iterations in a row.
-      backtracked: (T,) particles whose previous step lowered their log
-        density and was taken back at this iteration (`backtrack`; SVGD only).
-      step_scale_median: (T,) median over particles of the step scale
-        (`backtrack`; 1 when off).
-    """
-
-    logdensity_mean: np.ndarray
-    logdensity_max: np.ndarray
-    bandwidth: np.ndarray
-    phase: np.ndarray
-    learning_rate: np.ndarray
-    displacement: np.ndarray
-    nonfinite_particles: np.ndarray
-    step_seconds: np.ndarray
-    driving_norm_mean: np.ndarray
-    driving_norm_median: np.ndarray
-    repulsion_norm_mean: np.ndarray
-    repulsion_norm_median: np.ndarray
-    score_norm_median: np.ndarray
-    direction_norm_mean: np.ndarray
-    displacement_per_coordinate: np.ndarray
-    near_zero_share: np.ndarray
-    near_zero_threshold: np.ndarray
-    self_weight_median: np.ndarray
-    rescued: np.ndarray
-    nonfinite_redrawn: np.ndarray
-    backtracked: np.ndarray
-    step_scale_median: np.ndarray
-
-
-class StampResult(NamedTuple):
-    """What `run_stamp` returns.
-
-    Attributes:
-      particles: (n, d) final particles (after SGD; with `backtrack`, the best
-        point each particle visited in SGD).
-      svgd_particles: (n, d) particles at the end of the SVGD phase (with
-        `backtrack`, the last points it accepted).
-      diagnostics: `StampDiagnostics`.
-      svgd_iters: SVGD iterations run.
-      sgd_iters: SGD iterations run.
-      svgd_converged: True if the SVGD phase ended by the convergence test.
-      sgd_converged: True if the SGD phase ended by the convergence test.
-      rescued: (n,) times each particle was re-drawn (`rescue_window`).
-      nonfinite_redrawn: (n,) times each particle was re-drawn for being
-        non-finite (`nonfinite_redraw`).
-    """
-
-    particles: jax.Array
-    svgd_particles: jax.Array
-    diagnostics: StampDiagnostics
-    svgd_iters: int
-    sgd_iters: int
-    svgd_converged: bool
-    sgd_converged: bool
-    rescued: np.ndarray
-    nonfinite_redrawn: np.ndarray
-
-
-def has_converged(
-    logdensity_mean: Sequence[float],
-    displacement: Sequence[float],
-    *,
-    window: int,
-    rtol: float,
-    motion_tol: float,
-    min_iters: int = 0,
-) -> bool:
-    """The convergence test of a phase (Algorithm 1 line 7, and the end of SGD).
-
-    With t iterations done, L̄ the mean log posterior and m the mean particle
-    displacement per iteration, the phase has converged when t >= min_iters,
-    t > W and both
-
-      |L̄_t − L̄_{t−W}| ≤ rtol · max(|L̄_{t−W}|, 1)  and  (1/W) Σ_{s>t−W} m_s ≤ motion_tol.
-
-    The max(·, 1) compares a mean log posterior near 0 in absolute terms.
-    Non-finite values never count as converged.
-
-    Args:
-      logdensity_mean: L̄ for the iterations of this phase so far.
-      displacement: m for the same iterations.
-      window: W >= 1.
-      rtol: relative tolerance on the change of L̄.
-      motion_tol: tolerance on the mean displacement, in units of θ.
-      min_iters: iterations before the test may pass.
-
-    Returns:
-      Whether the phase has converged.
-    """
-    t = len(logdensity_mean)
-    if t < max(min_iters, window + 1):
-        return False
-    now, then = float(logdensity_mean[-1]), float(logdensity_mean[-1 - window])
-    motion = float(np.mean(np.asarray(displacement[-window:], dtype=float)))
-    if not (math.isfinite(now) and math.isfinite(then) and math.isfinite(motion)):
-        return False
-    return abs(now - then) <= rtol * max(abs(then), 1.0) and motion <= motion_tol
 
 
 def _default_optimizer(learning_rate) -> optax.GradientTransformation:
@@ -335,49 +84,11 @@ def _default_optimizer(learning_rate) -> optax.GradientTransformation:
     return optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate)
 
 
-class LoopSnapshot(NamedTuple):
-    """Everything `run_stamp` needs to continue a run after an iteration (host values).
-
-    A checkpoint holds one (`run_stamp(checkpoint=...)` hands them out,
-    `run_stamp(resume=...)` continues from one); continuing gives the same
-    iterations, bit for bit, as a run never stopped (the steps are
-    deterministic and every PRNG key comes from `key_data`).
-
-    Attributes:
-      phase: PHASE_SVGD or PHASE_SGD, the phase of the last iteration done.
-      iteration: iterations done in that phase (>= 1).
-      particles: (n, d) particles after it.
-      opt_leaves: the leaves of that phase's optimizer state
-        (`jax.tree.leaves`), in order; the tree comes from `init`.
-      key_data: `jax.random.key_data` of the loop's PRNG key.
-      rows: the `StampDiagnostics` row of every iteration so far, both phases
-        (each field that iteration's value).
-      svgd_particles: (n, d) particles at the end of SVGD; None in SVGD.
-      svgd_converged: whether SVGD ended by the convergence test; None in SVGD.
-      counters: the re-draw counters ({"stalled", "rescued", "failing",
-        "nonfinite_redrawn"}: (n,) ints each, and "fresh": the indices re-drawn
-        by the last re-draw, absent in older snapshots) and the backtracking state
-        ({"guard_theta": (n, d) last accepted particles, "guard_logp": (n,)
-        their log densities (NaN: none yet), "guard_scale": (n,) step scales}).
-    """
-
-    phase: int
-    iteration: int
-    particles: np.ndarray
-    opt_leaves: list
-    key_data: np.ndarray
-    rows: list
-    svgd_particles: np.ndarray | None
-    svgd_converged: bool | None
-    counters: dict
-
-
-# N.B. over 80 lines: 50 of them the docstring, 16 the signature; the loop itself is `_Loop`.
 def run_stamp(
     logdensity_fn: LogDensityFn,
     initial_particles: jax.Array | Callable[[jax.Array], jax.Array],
     kernel: Kernel | None = None,
-    config: StampConfig = StampConfig(),
+    config: StampConfig = StampConfig(),  # noqa: B008 (frozen: immutable)
     *,
     log_target_fn: LogDensityFn | None = None,
     sgd_logdensity_fn: LogDensityFn | None = None,
@@ -440,12 +151,47 @@ def run_stamp(
         kernel groups or log-density outputs of the wrong shape (while tracing
         the first step, before compiling it), or when log ρ is not finite at
         any initial particle (after the first step's evaluation).
+      MjstampError: when config leaves a learning rate (without the phase's
+        optimizer) or motion_tol None, for the caller to resolve.
 
     References:
       STAMP Algorithm 1.
     """
+    particles, key = _setup(config, initial_particles, redraw,
+                            optimizers=(svgd_optimizer, sgd_optimizer))
+    steps = _phase_steps(
+        logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
+        svgd_optimizer, sgd_optimizer, particles.shape[1],
+    )  # fmt: skip
+    loop = _Loop(config, jit, n=particles.shape[0], progress=Progress.of(progress).under("stamp"),
+                 redraw=redraw, checkpoint=checkpoint, deadlines=deadlines)
+    carry = _Carry.init(key, particles.shape[0], backtrack=config.backtrack)
+    if resume is not None:
+        carry = loop.restore(resume, particles.shape, carry)
+    with loop.bar:  # closed on the way out, also when a phase raises
+        svgd, state, carry, sgd_converged = loop.run(steps, particles, carry, resume)
+    return _result(svgd, state, carry, sgd_converged, particles.shape[1])
+
+
+def _setup(config, initial_particles, redraw, *, optimizers) -> tuple[jax.Array, jax.Array]:
+    """(particles (n, d), the loop's PRNG key): `run_stamp`'s arguments checked, particles drawn.
+
+    Args:
+      config: what `run_stamp` was given as its config.
+      initial_particles: its (n, d) particles, or a function of a PRNG key
+        returning them (called with a key split off the one of config.seed).
+      redraw: its source of fresh particles, or None.
+      optimizers: (SVGD's, SGD's) optimizer as given to `run_stamp` (None: the
+        default, which needs the phase's learning rate).
+
+    Raises:
+      ValueError: config is not a `StampConfig`, the particles are malformed,
+        or rescue is on without `redraw`.
+      MjstampError: a setting the caller was to resolve (None) is still None.
+    """
     if not isinstance(config, StampConfig):
         raise ValueError(f"config must be a StampConfig; got {config!r}")
+    svgd_optimizer, sgd_optimizer = optimizers
     unresolved = [name for name, given in (("svgd_learning_rate", svgd_optimizer),
                                            ("sgd_learning_rate", sgd_optimizer),
                                            ("motion_tol", None))
@@ -461,32 +207,7 @@ def run_stamp(
     check_particles(particles)
     if config.rescue_window and redraw is None:
         raise ValueError("config.rescue_window > 0 needs redraw(key, k), the particles' source")
-
-    (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer) = _phase_steps(
-        logdensity_fn, kernel, config, log_target_fn, sgd_logdensity_fn,
-        svgd_optimizer, sgd_optimizer, particles.shape[1],
-    )  # fmt: skip
-    loop = _Loop(config, jit, n=particles.shape[0], progress=Progress.of(progress).under("stamp"),
-                 redraw=redraw, checkpoint=checkpoint, deadlines=deadlines)
-    carry = _Carry.init(key, particles.shape[0], backtrack=config.backtrack)
-    if resume is not None:
-        carry = loop.restore(resume, particles.shape, carry)
-    with loop.bar:  # closed on the way out, also when a phase raises
-        svgd, carry = loop.run_svgd(svgd_step, init(particles, svgd_optimizer), carry, resume)
-        svgd_iters = sum(int(r.phase) == PHASE_SVGD for r in carry.rows)
-        state, carry, sgd_converged = loop.run_phase(
-            PHASE_SGD, sgd_step, init(svgd.particles, sgd_optimizer), carry,
-            resume=resume if resume is not None and resume.phase == PHASE_SGD else None,
-        )
-        if len(carry.rows) > svgd_iters:
-            state = state._replace(particles=_best(state.particles, carry.backtrack))
-    return StampResult(
-        particles=state.particles, svgd_particles=svgd.particles,
-        diagnostics=_stack_records(carry.rows, particles.shape[1]), svgd_iters=svgd_iters,
-        sgd_iters=len(carry.rows) - svgd_iters,
-        svgd_converged=carry.svgd_end[1], sgd_converged=sgd_converged,
-        rescued=carry.rescue.rescued, nonfinite_redrawn=carry.rescue.nonfinite_redrawn,
-    )  # fmt: skip
+    return particles, key
 
 
 def _phase_steps(
@@ -519,32 +240,22 @@ def _phase_steps(
     return (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer)
 
 
-class _Carry(NamedTuple):
-    """What the loop carries from one iteration to the next, across both phases.
+def _svgd_iters(carry: _Carry) -> int:
+    """The SVGD iterations among the carry's records."""
+    return sum(int(r.phase) == PHASE_SVGD for r in carry.rows)
 
-    Attributes:
-      key: the loop's PRNG key (every key a step or a re-draw gets comes from it).
-      rows: the `StampDiagnostics` row of every iteration so far, both phases.
-      rescue: the re-draw counters (`guards.RescueState`).
-      backtrack: `guards.BacktrackState` of the phase, or None (backtrack off).
-      svgd_end: (particles (n, d) host array, converged) once SVGD is over.
-    """
 
-    key: jax.Array
-    rows: tuple
-    rescue: guards.RescueState
-    backtrack: guards.BacktrackState | None
-    svgd_end: tuple = (None, None)
-
-    @classmethod
-    def init(cls, key: jax.Array, n: int, *, backtrack: bool) -> _Carry:
-        return cls(key, (), guards.rescue_init(n),
-                   guards.backtrack_init(n) if backtrack else None)
-
-    def split(self) -> tuple[_Carry, jax.Array]:
-        """(carry with the key moved on, a fresh subkey)."""
-        key, sub = jax.random.split(self.key)
-        return self._replace(key=key), sub
+def _result(svgd: SVGDState, state: SVGDState, carry: _Carry, sgd_converged: bool,
+            dim: int) -> StampResult:
+    """The `StampResult` of a finished run: SVGD's last state, the final one and the carry."""
+    svgd_iters = _svgd_iters(carry)
+    return StampResult(
+        particles=state.particles, svgd_particles=svgd.particles,
+        diagnostics=_stack_records(carry.rows, dim), svgd_iters=svgd_iters,
+        sgd_iters=len(carry.rows) - svgd_iters,
+        svgd_converged=carry.svgd_end[1], sgd_converged=sgd_converged,
+        rescued=carry.rescue.rescued, nonfinite_redrawn=carry.rescue.nonfinite_redrawn,
+    )  # fmt: skip
 
 
 class _Loop:
@@ -604,34 +315,31 @@ class _Loop:
 
         return compiled
 
-    def snapshot(self, phase: int, t: int, state, carry: _Carry) -> LoopSnapshot:
-        """The `LoopSnapshot` after iteration t of `phase` (fetches the state to the host)."""
-        particles, leaves, key_data = fetch(
-            (state.particles, jax.tree.leaves(state.opt_state), jax.random.key_data(carry.key))
-        )
-        return LoopSnapshot(
-            phase=phase, iteration=t, particles=np.asarray(particles),
-            opt_leaves=[np.asarray(leaf) for leaf in leaves], key_data=np.asarray(key_data),
-            rows=list(carry.rows), svgd_particles=carry.svgd_end[0],
-            svgd_converged=carry.svgd_end[1], counters=_counters(carry),
-        )
-
     def restore(self, snap: LoopSnapshot, shape: tuple[int, int], carry: _Carry) -> _Carry:
         """The carry of a snapshot: its key, records and counters (its state: `run_phase`)."""
-        if not isinstance(snap, LoopSnapshot):
-            raise ValueError(f"resume must be a LoopSnapshot; got {type(snap).__name__}")
-        if snap.phase not in (PHASE_SVGD, PHASE_SGD) or np.shape(snap.particles) != shape:
-            raise ValueError(f"resume: a snapshot of phase {snap.phase} with particles "
-                             f"{np.shape(snap.particles)} cannot continue a run of {shape}")
+        check_snapshot(snap, shape)
         self.bar.update(len(snap.rows))
-        c = snap.counters
-        rescue = guards.RescueState(
-            *(np.array(c[k]) for k in ("stalled", "rescued", "failing", "nonfinite_redrawn")),
-            fresh=np.array(c.get("fresh", guards.RescueState._field_defaults["fresh"]), int))
-        backtrack = None if carry.backtrack is None else _backtrack_from(c, shape[0])
-        return carry._replace(
-            key=jax.random.wrap_key_data(jnp.asarray(snap.key_data)), rows=tuple(snap.rows),
-            rescue=rescue, backtrack=backtrack)
+        return restore(snap, shape, carry)
+
+    def run(self, steps, particles: jax.Array, carry: _Carry, resume):
+        """(SVGD's last state, the final state, carry, SGD converged): both phases.
+
+        Args:
+          steps: ((SVGD step, its optimizer), (SGD step, its optimizer)), `_phase_steps`.
+          particles: (n, d) initial particles.
+          carry: the carry to start from (a snapshot's, with `resume`).
+          resume: None, or the `LoopSnapshot` to continue after.
+        """
+        (svgd_step, svgd_optimizer), (sgd_step, sgd_optimizer) = steps
+        svgd, carry = self.run_svgd(svgd_step, init(particles, svgd_optimizer), carry, resume)
+        svgd_iters = _svgd_iters(carry)
+        state, carry, sgd_converged = self.run_phase(
+            PHASE_SGD, sgd_step, init(svgd.particles, sgd_optimizer), carry,
+            resume=resume if resume is not None and resume.phase == PHASE_SGD else None,
+        )
+        if len(carry.rows) > svgd_iters:
+            state = state._replace(particles=_best(state.particles, carry.backtrack))
+        return svgd, state, carry, sgd_converged
 
     def run_svgd(self, step, state, carry: _Carry, resume) -> tuple[SVGDState, _Carry]:
         """(SVGD's last state, carry with `svgd_end` set): the SVGD phase, or a snapshot's."""
@@ -644,8 +352,7 @@ class _Loop:
             if carry.rows:
                 # The last update was never scored: SVGD ends at the points it accepted.
                 svgd = svgd._replace(particles=_best(svgd.particles, carry.backtrack))
-        svgd_iters = sum(int(r.phase) == PHASE_SVGD for r in carry.rows)
-        self.bar.total = svgd_iters + self.config.sgd_max_iters
+        self.bar.total = _svgd_iters(carry) + self.config.sgd_max_iters
         self.bar.refresh()
         return svgd, carry._replace(svgd_end=(np.asarray(svgd.particles), converged))
 
@@ -676,6 +383,17 @@ class _Loop:
         if carry.backtrack is not None and not done:
             # a new phase: a new objective, a new optimizer
             carry = carry._replace(backtrack=guards.backtrack_init(self.n))
+        return self._iterations(phase, step, state, carry, done, max_iters)
+
+    def _iterations(self, phase: int, step, state, carry: _Carry, done: list, max_iters: int):
+        """(state, carry, converged): the compiled `step` from iteration len(done) + 1 on.
+
+        Ends at the convergence test, the cap `max_iters` or the phase's
+        deadline. done: this phase's records so far (a snapshot's; else empty).
+        """
+        name = "svgd" if phase == PHASE_SVGD else "sgd"
+        means = [float(r.logdensity_mean) for r in done]
+        moves = [float(r.displacement) for r in done]
         # Near-zero score norm, fixed at the phase's first iteration.
         threshold = float(done[0].near_zero_threshold) if done else None
         for t in range(len(done) + 1, max_iters + 1):
@@ -686,7 +404,7 @@ class _Loop:
             self._report(phase, t, max_iters, means[-1], row)
             if self.checkpoint is not None:
                 self.checkpoint(lambda t=t, state=state, carry=carry:
-                                self.snapshot(phase, t, state, carry))
+                                snapshot(phase, t, state, carry))
             if self._converged(means, moves):
                 return state, carry, True
             deadline = self.deadlines[0 if phase == PHASE_SVGD else 1]
@@ -793,186 +511,3 @@ class _Loop:
 
 
 _NO_ROWS = np.zeros(0, dtype=int)
-
-
-def _resumed(state: SVGDState, resume: LoopSnapshot) -> SVGDState:
-    """`state` (a phase's fresh one) with a snapshot's particles and optimizer state."""
-    leaves, tree = jax.tree.flatten(state.opt_state)
-    if len(leaves) != len(resume.opt_leaves):
-        raise ValueError(f"resume: {len(resume.opt_leaves)} optimizer-state leaves, "
-                         f"this run's optimizer has {len(leaves)}")
-    opt_state = jax.tree.unflatten(tree, [
-        jnp.asarray(v, dtype=leaf.dtype)
-        for v, leaf in zip(resume.opt_leaves, leaves, strict=True)])
-    return state._replace(particles=jnp.asarray(resume.particles, state.particles.dtype),
-                          opt_state=opt_state)
-
-
-def _edited(after: SVGDState, host, backed: np.ndarray, drawn: list) -> SVGDState:
-    """The step's state with the guards' decisions applied, the particles put back once.
-
-    host: (n, d) particles after backtracking, or None where it changed none;
-    backed: rows taken back (their optimizer's first moment zeroed); drawn:
-    [(rows, fresh particles)] re-drawn, in order (every moment of theirs zeroed).
-    """
-    if host is None and not drawn:
-        return after
-    if host is None:
-        host = np.array(fetch(after.particles))
-    for idx, rows in drawn:
-        host[idx] = rows  # N.B. `host` is this function's own copy
-    opt_state = after.opt_state
-    if backed.size:
-        opt_state = _zero_rows(opt_state, backed, host.shape, first_moment_only=True)
-    if drawn:
-        # Adam's moments of a re-drawn particle start from zero.
-        opt_state = _zero_rows(opt_state, np.concatenate([idx for idx, _ in drawn]), host.shape)
-    return after._replace(particles=_put(host, after.particles), opt_state=opt_state)
-
-
-def _best(particles: jax.Array, guard: guards.BacktrackState | None) -> jax.Array:
-    """`particles` with each one backtracking has a scored point for replaced by that point."""
-    if guard is None:
-        return particles
-    rows, theta = guards.backtrack_best(guard)
-    return _set_rows(particles, rows, theta) if rows.size else particles
-
-
-def _counters(carry: _Carry) -> dict:
-    """A snapshot's counters: the re-draw counters and the backtracking state."""
-    r = carry.rescue
-    counters = {"stalled": r.stalled, "rescued": r.rescued, "failing": r.failing,
-                "nonfinite_redrawn": r.nonfinite_redrawn, "fresh": r.fresh}
-    g = carry.backtrack
-    if g is not None:
-        theta = np.full((r.stalled.size, 0), np.nan) if g.theta is None else g.theta
-        counters.update(guard_theta=theta, guard_logp=g.logp, guard_peak=g.peak,
-                        guard_scale=g.scale)
-    # N.B. copies: a snapshot kept by the caller must not share arrays with the run
-    return {k: np.array(v) for k, v in counters.items()}
-
-
-def _backtrack_from(counters: dict, n: int) -> guards.BacktrackState:
-    """The backtracking state of a snapshot's counters (a fresh one if it has none)."""
-    if "guard_scale" not in counters:
-        return guards.backtrack_init(n)
-    theta = np.array(counters["guard_theta"], dtype=float)
-    logp = np.array(counters["guard_logp"], dtype=float)
-    return guards.BacktrackState(
-        theta=theta if theta.size else None, logp=logp,
-        peak=np.array(counters.get("guard_peak", logp), dtype=float),
-        scale=np.array(counters["guard_scale"], dtype=float))
-
-
-def _set_rows(array: jax.Array, idx: np.ndarray, rows) -> jax.Array:
-    """`array` with rows `idx` set to `rows`, with the array's own sharding.
-
-    N.B. written on the host and put back shard by shard: an array replicated
-    over several processes' devices takes no eager `.at[].set` (it is not fully
-    addressable), and the compiled step expects the sharding it was built for.
-    """
-    host = np.array(fetch(array))
-    host[idx] = rows
-    return _put(host, array)
-
-
-def _put(host: np.ndarray, like: jax.Array) -> jax.Array:
-    """A host array as a jax.Array with the sharding of `like` (over any processes)."""
-    return jax.make_array_from_callback(host.shape, like.sharding, lambda i: host[i])
-
-
-def _zero_rows(opt_state, idx: np.ndarray, shape: tuple, *, first_moment_only: bool = False):
-    """The optimizer state with rows `idx` of every (n, d) leaf (Adam's moments) zeroed.
-
-    first_moment_only: zero only Adam's μ rows and keep ν (a step taken back).
-    N.B. Adam's step count is one scalar for all particles, so zeroing both
-    moments at count c makes the next updates (1-β₁)/(1-β₁^c)/√((1-β₂)/(1-β₂^c))
-    times the learning rate, up to ~3x for large c; with ν kept (it remembers
-    the steep gradient the failed step met) the restart is gentler than the
-    step taken back. An optimizer without an Adam state has every (n, d) row zeroed.
-    """
-
-    def reset(leaf):
-        if hasattr(leaf, "shape") and leaf.shape == shape:
-            return _set_rows(leaf, idx, 0)
-        return leaf
-
-    if first_moment_only:
-        adam = lambda x: isinstance(x, optax.ScaleByAdamState)  # noqa: E731
-        if any(adam(x) for x in jax.tree.leaves(opt_state, is_leaf=adam)):
-            return jax.tree.map(
-                lambda x: x._replace(mu=jax.tree.map(reset, x.mu)) if adam(x) else x,
-                opt_state, is_leaf=adam)
-    return jax.tree.map(reset, opt_state)
-
-
-def fetch(tree):
-    """`jax.device_get` that also reads arrays spread over several processes' devices.
-
-    N.B. such an array is gathered by a collective, which every process must
-    reach at the same point; the loop's arrays are replicated by the caller's
-    `jit` when its mesh spans processes (`mjstamp.parallel.replicate_outputs`),
-    so it never needs one.
-    """
-    def one(x):
-        if isinstance(x, jax.Array) and not x.is_fully_addressable and not x.is_fully_replicated:
-            from jax.experimental import multihost_utils  # noqa: PLC0415
-
-            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-        return x
-
-    return jax.device_get(jax.tree.map(one, tree))
-
-
-_FROM_STEP = tuple(f for f in StampDiagnostics._fields if f in StepInfo._fields)
-
-
-def _fetch(info: StepInfo, phase: int) -> tuple[StampDiagnostics, np.ndarray]:
-    """The iteration's record and its (n,) score norms, on the host (waits for the step).
-
-    The record's step_seconds and near-zero fields are left for the loop to fill.
-    N.B. everything derived from the (n,) score norms is computed here in numpy: a
-    jnp call outside the step would be one more dispatch per iteration.
-    """
-    # N.B. the fields a StepInfo carries are copied by name; the rest the loop fills.
-    copied = {name: getattr(info, name) for name in _FROM_STEP}
-    record, score_norm = fetch((
-        StampDiagnostics(**{**dict.fromkeys(StampDiagnostics._fields), **copied})._replace(
-            phase=phase, rescued=0, nonfinite_redrawn=0, backtracked=0,
-            step_scale_median=1.0),
-        info.score_norm,
-    ))
-    finite = score_norm[np.isfinite(score_norm)]
-    median = float(np.median(finite)) if finite.size else math.nan
-    return record._replace(score_norm_median=median), score_norm
-
-
-# dtype of each StampDiagnostics column; bandwidth's width g may differ between phases
-# (SGD has none): a row of another width is NaN.
-_COLUMN_DTYPES = {"phase": np.int8, "nonfinite_particles": int, "rescued": int,
-                  "nonfinite_redrawn": int, "backtracked": int}
-
-
-def _stack_records(rows: Sequence[StampDiagnostics], dim: int) -> StampDiagnostics:
-    """The run's `StampDiagnostics`: its per-iteration rows stacked leaf by leaf (T rows).
-
-    Args:
-      rows: one `StampDiagnostics` per iteration, each field that iteration's
-        value (bandwidth (g,), displacement_per_coordinate (d,), the rest scalars).
-      dim: d, the width of displacement_per_coordinate when there are no rows.
-    """
-    g = max((np.size(r.bandwidth) for r in rows), default=0)
-
-    def bandwidth(b):
-        b = np.asarray(b, dtype=float).ravel()
-        return b if b.size == g else np.full(g, np.nan)
-
-    if not rows:
-        return StampDiagnostics(**{f: np.zeros(0, _COLUMN_DTYPES.get(f, float))
-                                   for f in StampDiagnostics._fields})._replace(
-            bandwidth=np.zeros((0, 0)), displacement_per_coordinate=np.zeros((0, dim)))
-    rows = [r._replace(bandwidth=bandwidth(r.bandwidth)) for r in rows]
-    stacked = jax.tree.map(lambda *column: np.array(column), *rows)
-    return StampDiagnostics(**{f: np.asarray(v, dtype=_COLUMN_DTYPES.get(f, float))
-                               for f, v in stacked._asdict().items()})._replace(
-        bandwidth=np.asarray(stacked.bandwidth, dtype=float).reshape(len(rows), g))
