@@ -12,6 +12,20 @@ import mjstamp
 
 mjstamp.configure(precision="float64")
 
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items):
+    """Under xdist (`--dist loadgroup`), each module's tests run in one worker.
+
+    A module's compiled fixtures (module- or session-scoped scenes, rollouts,
+    solves) are then built once, not once per worker. A test marked
+    `xdist_group(NAME)` itself keeps that group (a long parametrised module can
+    spread over both workers that way).
+    """
+    for item in items:
+        if not any(True for _ in item.iter_markers("xdist_group")):
+            item.add_marker(pytest.mark.xdist_group(item.path.name))
+
 # A puck on a plane table with one wall and a goal site: small enough that its
 # rollouts compile in seconds. Tests vary the wall's turn, the goal's place and
 # size and the success radius through `tiny_task` (the MJCF alone: `tiny_xml`).
