@@ -36,8 +36,8 @@ TOL = 1e-9
 
 
 def _pair_param(pair: str):
-    """A parametrize entry: grouped per pair under xdist, exhaustive unless in DEFAULT_PAIRS."""
-    marks = [pytest.mark.xdist_group(f"convex-{pair}")]
+    """A parametrize entry: its own xdist group, exhaustive unless in DEFAULT_PAIRS."""
+    marks = [pytest.mark.xdist_group(f"convex-vs-c-{pair}")]
     if pair not in DEFAULT_PAIRS:
         marks.append(pytest.mark.exhaustive)
     return pytest.param(pair, marks=marks, id=pair)
