@@ -12,6 +12,36 @@ import mjstamp
 
 mjstamp.configure(precision="float64")
 
+
+# The longest xdist groups (cold, 2-core CPU), started first so that neither worker is left
+# with a long one at the end; every other group follows in collection order.
+LONGEST_FIRST = ["04_robot_arm.ipynb", "03_skills_and_pushing.ipynb", "01_quickstart.ipynb",
+                 "convex-cylinder-box", "convex-box-mesh", "convex-capsule-cylinder",
+                 "convex-capsule-mesh", "convex-ellipsoid-ellipsoid", "convex-vs-c-cylinder-box",
+                 "convex-vs-c-box-mesh", "convex-vs-c-capsule-cylinder",
+                 "convex-vs-c-ellipsoid-ellipsoid", "02_new_task.ipynb"]
+
+
+def _group(item) -> str:
+    return next(iter(m.args[0] for m in item.iter_markers("xdist_group")), "")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items):
+    """Under xdist (`--dist loadgroup`), each module's tests run in one worker.
+
+    A module's compiled fixtures (module- or session-scoped scenes, rollouts,
+    solves) are then built once, not once per worker. A test marked
+    `xdist_group(NAME)` itself keeps that group (a long parametrised module can
+    spread over both workers that way). The groups in LONGEST_FIRST go first.
+    """
+    for item in items:
+        if not _group(item):
+            item.add_marker(pytest.mark.xdist_group(item.path.name))
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(_group(item), len(rank)))  # stable: the rest in order
+
+
 # A puck on a plane table with one wall and a goal site: small enough that its
 # rollouts compile in seconds. Tests vary the wall's turn, the goal's place and
 # size and the success radius through `tiny_task` (the MJCF alone: `tiny_xml`).

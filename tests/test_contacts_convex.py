@@ -11,6 +11,8 @@ minutes per pair (three for a gradient) on two cores, so those tests are marked
 slow; JAX's persistent compilation cache (conftest) makes later runs fast.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -19,13 +21,31 @@ import pytest
 from mujoco.mjx._src.collision_types import GeomInfo
 
 from mjstamp import colliders
-from mjstamp.colliders import ccd, compare, convex, gjk
+from mjstamp.colliders import ccd, compare, convex
 
 GJK_PAIRS = ["capsule-cylinder", "cylinder-cylinder", "cylinder-box", "sphere-ellipsoid",
              "capsule-ellipsoid", "ellipsoid-ellipsoid", "ellipsoid-cylinder", "ellipsoid-box",
              "sphere-mesh", "capsule-mesh", "cylinder-mesh", "ellipsoid-mesh", "box-mesh",
              "mesh-mesh"]
+# The default run compares these against C: GJK and EPA on a cylinder with the multi-contact
+# rule (cylinder-box), a capsule shrunk to a segment (capsule-cylinder), the ellipsoid support
+# (ellipsoid-ellipsoid) and a mesh's polygons (box-mesh). The other pairs, each a 1-2 min cold
+# compile on two cores, are the exhaustive tier (`pytest -m exhaustive`).
+DEFAULT_PAIRS = ["cylinder-box", "capsule-cylinder", "ellipsoid-ellipsoid", "box-mesh"]
 TOL = 1e-9
+
+
+def _pair_param(pair: str):
+    """A parametrize entry: its own xdist group, exhaustive unless in DEFAULT_PAIRS."""
+    marks = [pytest.mark.xdist_group(f"convex-vs-c-{pair}")]
+    if pair not in DEFAULT_PAIRS:
+        marks.append(pytest.mark.exhaustive)
+    return pytest.param(pair, marks=marks, id=pair)
+
+
+def _grouped(pair: str):
+    """A parametrize entry grouped per pair under xdist (a pair's compiled program is shared)."""
+    return pytest.param(pair, marks=pytest.mark.xdist_group(f"convex-{pair}"), id=pair)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -69,7 +89,7 @@ def test_plane_mesh_matches_c():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pair", GJK_PAIRS)
+@pytest.mark.parametrize("pair", [_pair_param(p) for p in GJK_PAIRS])
 def test_pair_matches_c(pair):
     _check(pair, 300, seed=12)
 
@@ -135,11 +155,69 @@ def _poses(pair: str, n: int, seed: int):
     return pm, out
 
 
+# Every gradient check of a pair runs one compiled program: `_compiled` jits the vmapped
+# value and derivative of `_objective` (or `_parts`) at BATCH poses; the central differences
+# read its values at x0 +- eps, the gradient its derivative at x0, and the degenerate poses
+# are padded to BATCH (cylinder-box's come from the program its gradient test compiled).
+BATCH = 24
+
+
+@functools.cache
+def _compiled(pair: str, parts: bool):
+    """jit(vmap(x, pose -> (value, derivative))) of the pair's objective, at any batch."""
+    t1, t2 = compare.parse_pair(pair)
+    pm = compare.pair_model(t1, t2)
+    f = (_parts if parts else _objective)(colliders.PORTED[(t1, t2)].pair_fn,
+                                          convex.kind_of(pm.m, 0), convex.kind_of(pm.m, 1))
+    if parts:
+        def value_and_derivative(*args):
+            jac, value = jax.jacrev(lambda *a: (lambda y: (y, y))(f(*a)), has_aux=True)(*args)
+            return value, jac
+    else:
+        value_and_derivative = jax.value_and_grad(f)
+    return jax.jit(jax.vmap(value_and_derivative))
+
+
+def _batch(poses):
+    """Poses (pos, mat, size, margin) stacked along a leading axis, padded to BATCH."""
+    assert 0 < len(poses) <= BATCH
+    poses = list(poses) + [poses[-1]] * (BATCH - len(poses))
+    return tuple(jnp.asarray(np.stack([np.asarray(p[i], np.float64) for p in poses]))
+                 for i in range(4))
+
+
+def _check_against_differences(pair: str, parts: bool) -> None:
+    """Derivatives at x0 = 0 against central differences (eps 1e-6) on smooth pieces."""
+    _, poses = _poses(pair, BATCH, seed=3)
+    fn = _compiled(pair, parts)
+    args = _batch(poses)
+    x0 = jnp.zeros((BATCH, 4))
+    _, D = (np.asarray(a) for a in fn(x0, *args))  # (B,) + (4,) or (3, 4)
+    fd = []
+    for eps in (1e-6, 2e-6):
+        cols = []
+        for k in range(4):
+            e = jnp.zeros(4).at[k].set(eps)
+            plus, _ = fn(x0 + e, *args)
+            minus, _ = fn(x0 - e, *args)
+            cols.append((np.asarray(plus) - np.asarray(minus)) / (2 * eps))
+        fd.append(np.stack(cols, axis=-1))  # (B, 4) or (B, 3, 4)
+    checked = 0
+    for i in range(BATCH):
+        assert np.all(np.isfinite(D[i]))
+        scale = np.maximum(np.abs(fd[0][i]), 1e-2)
+        if np.max(np.abs(fd[0][i] - fd[1][i]) / scale) > 1e-6:
+            continue  # a discontinuity within eps (another EPA face, a clipped vertex)
+        np.testing.assert_allclose(D[i], fd[0][i], rtol=1e-5, atol=1e-5 * scale.max())
+        checked += 1
+    assert checked >= 8
+
+
 @pytest.mark.slow
 # N.B. a GJK/EPA gradient takes about three minutes to compile on two cores: cylinder-box
 # (GJK, EPA and the multi-contact rule) and capsule-cylinder (shrunk to a segment) cover the
-# code paths; the degenerate poses reuse cylinder-box's compiled gradient (the persistent cache).
-@pytest.mark.parametrize("pair", ["cylinder-box", "capsule-cylinder"])
+# code paths; the degenerate poses reuse cylinder-box's compiled program (`_compiled`).
+@pytest.mark.parametrize("pair", [_grouped("cylinder-box"), _grouped("capsule-cylinder")])
 def test_gradients_match_central_differences(pair):
     """Reverse-mode gradients equal central differences (eps 1e-6) on smooth pieces.
 
@@ -147,28 +225,7 @@ def test_gradients_match_central_differences(pair):
     smooth with pieces that can be narrower than eps: a pose is used only where
     central differences at eps and 2 eps agree (both within one piece).
     """
-    pm, poses = _poses(pair, 24, seed=3)
-    fn = colliders.PORTED[compare.parse_pair(pair)].pair_fn
-    f = _objective(fn, convex.kind_of(pm.m, 0), convex.kind_of(pm.m, 1))
-    val = jax.jit(f)
-    grad = jax.jit(jax.grad(f))
-    x0 = jnp.zeros(4)
-    checked = 0
-    for pose in poses:
-        args = tuple(jnp.asarray(a) for a in pose)
-        g = np.asarray(grad(x0, *args))
-        assert np.all(np.isfinite(g))
-        fd = []
-        for eps in (1e-6, 2e-6):
-            e = np.eye(4) * eps
-            fd.append(np.array([(float(val(x0 + e[k], *args)) - float(val(x0 - e[k], *args)))
-                                / (2 * eps) for k in range(4)]))
-        scale = np.maximum(np.abs(fd[0]), 1e-2)
-        if np.max(np.abs(fd[0] - fd[1]) / scale) > 1e-6:
-            continue  # a discontinuity within eps (another EPA face, a clipped vertex)
-        np.testing.assert_allclose(g, fd[0], rtol=1e-5, atol=1e-5 * scale.max())
-        checked += 1
-    assert checked >= 8
+    _check_against_differences(pair, parts=False)
 
 
 def _parts(pair_fn, k1, k2):
@@ -186,7 +243,7 @@ def _parts(pair_fn, k1, k2):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pair", ["box-mesh", "capsule-mesh"])
+@pytest.mark.parametrize("pair", [_grouped("box-mesh"), _grouped("capsule-mesh")])
 def test_converged_gradients_match_central_differences(pair):
     """`ccd.ccd_converged`'s rebuild: distance, position and normal each as C's differences.
 
@@ -194,35 +251,12 @@ def test_converged_gradients_match_central_differences(pair):
     positions only); a rebuild from material points alone missed positions and
     normals on cylinder-box poses by up to 100% (why cylinders keep `ccd.ccd`).
     """
-    t1, t2 = compare.parse_pair(pair)
-    assert {t1, t2} <= ccd.CONVERGED_KINDS
-    pm, poses = _poses(pair, 24, seed=3)
-    f = _parts(colliders.PORTED[(t1, t2)].pair_fn, convex.kind_of(pm.m, 0),
-               convex.kind_of(pm.m, 1))
-    val = jax.jit(f)
-    jac = jax.jit(jax.jacrev(f))
-    x0 = jnp.zeros(4)
-    checked = 0
-    for pose in poses:
-        args = tuple(jnp.asarray(a) for a in pose)
-        J = np.asarray(jac(x0, *args))
-        fd = []
-        for eps in (1e-6, 2e-6):
-            e = np.eye(4) * eps
-            fd.append(np.stack([(np.asarray(val(x0 + e[k], *args))
-                                 - np.asarray(val(x0 - e[k], *args))) / (2 * eps)
-                                for k in range(4)], axis=1))
-        scale = np.maximum(np.abs(fd[0]), 1e-2)
-        if np.max(np.abs(fd[0] - fd[1]) / scale) > 1e-6:
-            continue  # a discontinuity within eps
-        np.testing.assert_allclose(J, fd[0], rtol=1e-5, atol=1e-5 * scale.max())
-        checked += 1
-    assert checked >= 8
+    assert set(compare.parse_pair(pair)) <= ccd.CONVERGED_KINDS
+    _check_against_differences(pair, parts=True)
 
 
 def _aligned(pair):
     """Degenerate poses: parallel faces, coaxial, coincident centers, exactly touching."""
-    t1, t2 = compare.parse_pair(pair)
     size = np.array([[0.2, 0.1, 0.15], [0.2, 0.1, 0.15]])
     eye = np.eye(3)
     flip = np.diag([1.0, -1.0, -1.0])
@@ -231,15 +265,13 @@ def _aligned(pair):
                      (np.array([0.0, 0.0, 0.25]), flip), (np.array([0.1, 0.0, 0.2]), eye)):
         pos = np.stack([np.zeros(3), p2])
         poses.append((pos, np.stack([eye, mat2]), size, 0.0))
-    return t1, t2, poses
+    return poses
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pair", ["cylinder-box", "ellipsoid-ellipsoid"])
+@pytest.mark.parametrize("pair", [_grouped("cylinder-box"), _grouped("ellipsoid-ellipsoid")])
 def test_gradients_finite_on_degenerate_poses(pair):
-    t1, t2, poses = _aligned(pair)
-    fn = colliders.PORTED[(t1, t2)].pair_fn
-    grad = jax.jit(jax.grad(_objective(fn, gjk.Kind(t1), gjk.Kind(t2))))
-    for pose in poses:
-        g = np.asarray(grad(jnp.zeros(4), *(jnp.asarray(a) for a in pose)))
-        assert np.all(np.isfinite(g)), (pose, g)
+    poses = _aligned(pair)
+    _, grad = _compiled(pair, False)(jnp.zeros((BATCH, 4)), *_batch(poses))
+    for i, pose in enumerate(poses):
+        assert np.all(np.isfinite(np.asarray(grad[i]))), (pose, grad[i])
