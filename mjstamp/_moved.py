@@ -16,11 +16,13 @@ import warnings
 _PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
 
 
-def _warn(text: str) -> None:
-    """Warns where the user wrote the old path: the first frame outside mjstamp.
+def warn_at_user(text: str, category: type[Warning] = DeprecationWarning) -> None:
+    """Warns where the user wrote the old form: the first frame outside mjstamp.
 
     N.B. Python shows a DeprecationWarning only where it is attributed to
-    `__main__`; the import machinery's frames do not count (`warnings` skips them).
+    `__main__` (a script, a notebook); one attributed to a frame inside mjstamp
+    would never be seen. The import machinery's frames do not count (`warnings`
+    skips them).
     """
     frame, level = sys._getframe(0), 1
     while frame is not None:
@@ -31,7 +33,7 @@ def _warn(text: str) -> None:
                 break
             level += 1
         frame = frame.f_back
-    warnings.warn(text, DeprecationWarning, stacklevel=level)
+    warnings.warn(text, category, stacklevel=level)
 
 
 def alias(old: str, new: str, *, submodules: tuple[str, ...] = ()):
@@ -45,7 +47,7 @@ def alias(old: str, new: str, *, submodules: tuple[str, ...] = ()):
     Returns:
       The module `new`.
     """
-    _warn(f"{old} moved to {new}; the old path works until the next release")
+    warn_at_user(f"{old} moved to {new}; the old path works until the next release")
     module = importlib.import_module(new)
     sys.modules[old] = module
     for name in submodules:
@@ -58,8 +60,28 @@ def moved_attribute(module: str, name: str, new: str):
 
     For a module-level `__getattr__` at the old place: `module.name` still works.
     """
-    _warn(f"{module}.{name} moved to {new}.{name}; the old path works until the next release")
+    warn_at_user(f"{module}.{name} moved to {new}.{name}; the old path works until the next "
+                 "release")
     value = getattr(importlib.import_module(new), name)
     setattr(sys.modules[module], name, value)  # N.B. one line: `from m import name` asks twice
     return value
 
+
+def moved_names(module: str, moved: dict[str, str]):
+    """A module-level `__getattr__` for names that moved out of `module`.
+
+    Args:
+      module: the module that held them (`__name__`).
+      moved: {name: the module that holds it now}.
+
+    Returns:
+      `__getattr__(name)`: a moved name with one deprecation line
+      (`moved_attribute`); any other name an AttributeError.
+    """
+
+    def __getattr__(name: str):
+        if name in moved:
+            return moved_attribute(module, name, moved[name])
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+
+    return __getattr__

@@ -10,14 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import inspect
 import math
 import numbers
-import os
-import warnings
 from collections.abc import Mapping
 from typing import Any
 
+from mjstamp import _moved
 from mjstamp.errors import MjstampError, valid_list
 from mjstamp.svgd.polish import PolishConfig
 from mjstamp.svgd.stamp import StampConfig
@@ -287,20 +285,10 @@ FLAT_NAMES = {
 
 
 def _deprecated(old: str, new: str) -> None:
-    """Warns where the user wrote the flat name: the first frame outside mjstamp.
+    """Warns where the user wrote the flat name (`_moved.warn_at_user`)."""
+    _moved.warn_at_user(f"solve setting {old!r} is now {new!r}; the flat name goes in the next "
+                        "release", SettingDeprecationWarning)
 
-    N.B. Python shows a DeprecationWarning only where it is attributed to
-    `__main__` (a script, a notebook); one attributed to a frame inside mjstamp
-    (`registry.load`, `solve(task, {...})`) would never be seen.
-    """
-    frame, level = inspect.currentframe().f_back, 2
-    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):
-        frame, level = frame.f_back, level + 1
-    warnings.warn(f"solve setting {old!r} is now {new!r}; the flat name goes in the next "
-                  "release", SettingDeprecationWarning, stacklevel=level)
-
-
-_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
 
 
 def _is_group_value(name: str, value) -> bool:

@@ -37,7 +37,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from mjstamp import fileio, verify
+from mjstamp import _moved, fileio, verify
 from mjstamp.errors import MjstampError
 from mjstamp.progress import Progress, ProgressLike
 
@@ -246,11 +246,5 @@ def coverage(found_plans, modes: dict, *, min_share: float = MIN_SHARE) -> dict:
         "method": modes.get("method", "grid"),
     }
 
-
-def __getattr__(name: str):
-    # N.B. random_search moved to the baselines; its old name works for one release.
-    if name == "random_search":
-        from mjstamp import _moved  # noqa: PLC0415
-
-        return _moved.moved_attribute(__name__, name, "mjstamp.baselines.sampling")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# N.B. random_search moved to the baselines; its old name works for one release.
+__getattr__ = _moved.moved_names(__name__, {"random_search": "mjstamp.baselines.sampling"})

@@ -31,7 +31,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from mjstamp import parallel
+from mjstamp import _moved, parallel
 from mjstamp.checkpoint import FILENAME as CHECKPOINT_FILENAME
 from mjstamp.checkpoint import task_of as checkpoint_task
 from mjstamp.errors import MjstampError, valid_list
@@ -615,11 +615,6 @@ def format_table(summary: dict, *, markdown: bool = False) -> str:
             for b in body]
     return "\n".join([title, line, "-" * len(line), *rows, footer])
 
-
-def __getattr__(name: str):
-    # N.B. the summary of a solve moved to the solver; its old names work for one release.
-    if name in ("summarize", "to_arrays", "group"):
-        from mjstamp import _moved  # noqa: PLC0415
-
-        return _moved.moved_attribute(__name__, name, "mjstamp.solver.summary")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# N.B. the summary of a solve moved to the solver; its old names work for one release.
+__getattr__ = _moved.moved_names(
+    __name__, dict.fromkeys(("summarize", "to_arrays", "group"), "mjstamp.solver.summary"))

@@ -10,6 +10,7 @@ May import: scenes/, relax/, svgd/ (kernels), skills/ (pushing), config.
 
 from __future__ import annotations
 
+from mjstamp import _moved
 from mjstamp.tasks.declaration import Contact, Kind, Term, Variable
 from mjstamp.tasks.problem import Decoded, Poses, Problem, Rollout, as_problem
 from mjstamp.tasks.task import Task
@@ -20,14 +21,8 @@ _MOVED = {
     "parse_overrides": "mjstamp.cli.settings",
 }
 
-
-def __getattr__(name: str):
-    # N.B. the registry moved out of this package; its old names work for one release.
-    if name in _MOVED:
-        from mjstamp import _moved  # noqa: PLC0415
-
-        return _moved.moved_attribute(__name__, name, _MOVED[name])
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# N.B. the registry moved out of this package; its old names work for one release.
+__getattr__ = _moved.moved_names(__name__, _MOVED)
 
 
 __all__ = ["Contact", "Decoded", "Kind", "Poses", "Problem", "Rollout", "Task", "Term", "Variable",
